@@ -1,0 +1,20 @@
+//! The cluster fabric: the network the roles talk over.
+//!
+//! * [`topology`]: which nodes exist and which are linked (a TOML file, or a preset).
+//! * [`routing`]: dimension-ordered next hops and broadcast spanning trees.
+//! * [`model`]: the paper's serial-link, DMA and G-bus timings, applied exactly once, here.
+//! * [`clock`]: the shared monotonic clock and a timer precise well below a millisecond.
+//! * [`node`]: the runtime every process runs: links, forwarding, delivery.
+//! * [`cluster`]: forming a cluster: registration with the host, addresses, links up.
+
+pub mod clock;
+pub mod cluster;
+pub mod diag;
+pub mod model;
+pub mod node;
+pub mod routing;
+pub mod topology;
+
+pub use model::Model;
+pub use node::{Delivery, Fabric, RequestError, Route, SendError, Via};
+pub use topology::Topology;

@@ -1,0 +1,319 @@
+//! The delay model: how long the paper's hardware took to move data, applied to real frames.
+//!
+//! Serial links (the `paper` link model) follow the paper's measurement: an 84-byte packet
+//! with no other traffic takes `T(us) = 310 + 234 d_row + 300 d_col` to cross the mesh. We
+//! read that as a fixed 310 us of software overhead per message plus, per link crossed,
+//! 234 us along a column (a row step) or 300 us along a row (a column step); a packet larger
+//! than 84 bytes adds its extra bytes at the T800 link's rate. Bulk data over serial links
+//! travels in 1 KB packets holding 640 bytes of data each, store-and-forward at every hop,
+//! so a long message pipelines through the mesh and each link is busy for one packet time
+//! per packet.
+//!
+//! DMA and G-bus timings are not given in the paper's text; the defaults below are
+//! assumptions, stated here and kept in the topology file so an experiment can change them:
+//!
+//! | parameter | default | why |
+//! |---|---|---|
+//! | `dma_setup_us` | 100 | the fork node's software preparation before a DMA ("invokes DMA transfer immediately after its preparation") |
+//! | `dma_bytes_per_us` | 20 | a 64-bit DMA bus between 1991 memories: tens of MB/s |
+//! | `gbus_setup_us` | 5 | bus arbitration |
+//! | `gbus_bytes_per_us` | 84 | the paper: "the transfer rate is up to 84MB/sec" |
+//! | `gbus_count` | 2 | the paper: "2 independent busses called G-bus", round-robin arbitration |
+//! | `link_bytes_per_us` | 1.74 | a T800 link at 20 Mbit/s moves about 1.74 MB/s of data |
+//!
+//! `time_scale` multiplies every modelled delay: a CPU thousands of times faster than a T800
+//! renders so quickly that the paper's ratio of communication to computation needs the link
+//! times scaled down (a scale below 1) or the experiment runs at the paper's real times (1).
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum LinkModelKind {
+    /// No added delay: the fabric runs as fast as the machine allows.
+    #[default]
+    None,
+    /// The paper's measured timings.
+    Paper,
+}
+
+impl std::str::FromStr for LinkModelKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "none" => Ok(LinkModelKind::None),
+            "paper" => Ok(LinkModelKind::Paper),
+            o => Err(format!("unknown link model {o:?} (none or paper)")),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelParams {
+    pub link: LinkModelKind,
+    pub time_scale: f64,
+    pub base_us: f64,
+    pub row_hop_us: f64,
+    pub col_hop_us: f64,
+    pub reference_bytes: u32,
+    pub link_bytes_per_us: f64,
+    pub packet_bytes: u32,
+    pub packet_data_bytes: u32,
+    pub dma_setup_us: f64,
+    pub dma_bytes_per_us: f64,
+    pub gbus_setup_us: f64,
+    pub gbus_bytes_per_us: f64,
+    pub gbus_count: u32,
+}
+
+impl Default for ModelParams {
+    fn default() -> Self {
+        ModelParams {
+            link: LinkModelKind::None,
+            time_scale: 1.0,
+            base_us: 310.0,
+            row_hop_us: 234.0,
+            col_hop_us: 300.0,
+            reference_bytes: 84,
+            link_bytes_per_us: 1.74,
+            packet_bytes: 1024,
+            packet_data_bytes: 640,
+            dma_setup_us: 100.0,
+            dma_bytes_per_us: 20.0,
+            gbus_setup_us: 5.0,
+            gbus_bytes_per_us: 84.0,
+            gbus_count: 2,
+        }
+    }
+}
+
+impl ModelParams {
+    pub fn check(&self) -> Result<(), String> {
+        let pos = [
+            ("time_scale", self.time_scale),
+            ("link_bytes_per_us", self.link_bytes_per_us),
+            ("dma_bytes_per_us", self.dma_bytes_per_us),
+            ("gbus_bytes_per_us", self.gbus_bytes_per_us),
+        ];
+        for (name, v) in pos {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("model.{name} must be a positive number, not {v}"));
+            }
+        }
+        let nonneg = [
+            ("base_us", self.base_us),
+            ("row_hop_us", self.row_hop_us),
+            ("col_hop_us", self.col_hop_us),
+            ("dma_setup_us", self.dma_setup_us),
+            ("gbus_setup_us", self.gbus_setup_us),
+        ];
+        for (name, v) in nonneg {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!(
+                    "model.{name} must be a number of at least 0, not {v}"
+                ));
+            }
+        }
+        if self.packet_data_bytes == 0 || self.packet_data_bytes > self.packet_bytes {
+            return Err("model.packet_data_bytes must be between 1 and packet_bytes".into());
+        }
+        if self.gbus_count == 0 {
+            return Err("model.gbus_count must be at least 1".into());
+        }
+        Ok(())
+    }
+}
+
+/// The model in the units the runtime uses (nanoseconds, scaled).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Model {
+    pub params: ModelParams,
+}
+
+impl Model {
+    pub fn new(params: ModelParams) -> Model {
+        Model { params }
+    }
+
+    pub fn links_delayed(&self) -> bool {
+        self.params.link == LinkModelKind::Paper
+    }
+
+    fn ns(&self, us: f64) -> u64 {
+        (us * 1000.0 * self.params.time_scale).round().max(0.0) as u64
+    }
+
+    /// Software overhead paid once per message sent over serial links.
+    pub fn base_ns(&self) -> u64 {
+        if self.links_delayed() {
+            self.ns(self.params.base_us)
+        } else {
+            0
+        }
+    }
+
+    /// How a message of `wire_bytes` crosses serial links: (packets, bytes per packet).
+    /// A message that fits one paper packet travels as it is; longer ones in 1 KB packets of
+    /// 640 data bytes.
+    pub fn packets(&self, wire_bytes: usize) -> (u64, u32) {
+        let p = &self.params;
+        if wire_bytes <= p.packet_bytes as usize {
+            (1, wire_bytes as u32)
+        } else {
+            (
+                wire_bytes.div_ceil(p.packet_data_bytes as usize) as u64,
+                p.packet_bytes,
+            )
+        }
+    }
+
+    /// Time for one packet of `bytes` to cross one link.
+    pub fn hop_ns(&self, vertical: bool, bytes: u32) -> u64 {
+        if !self.links_delayed() {
+            return 0;
+        }
+        let p = &self.params;
+        let reference = if vertical { p.row_hop_us } else { p.col_hop_us };
+        let extra = (bytes as f64 - p.reference_bytes as f64) / p.link_bytes_per_us;
+        self.ns((reference + extra).max(0.0))
+    }
+
+    /// A DMA transfer of `bytes` between a fork node's shared memory and a render node.
+    pub fn dma_ns(&self, bytes: u64) -> u64 {
+        if !self.links_delayed() {
+            return 0;
+        }
+        self.ns(self.params.dma_setup_us + bytes as f64 / self.params.dma_bytes_per_us)
+    }
+
+    /// One G-bus transfer of `bytes` between two cards' shared memories.
+    pub fn gbus_ns(&self, bytes: u64) -> u64 {
+        if !self.links_delayed() {
+            return 0;
+        }
+        self.ns(self.params.gbus_setup_us + bytes as f64 / self.params.gbus_bytes_per_us)
+    }
+
+    /// The paper's formula for an 84-byte packet, in ns, for comparison with measurements.
+    pub fn formula_ns(&self, d_row: u32, d_col: u32) -> u64 {
+        let p = &self.params;
+        self.ns(p.base_us + p.row_hop_us * d_row as f64 + p.col_hop_us * d_col as f64)
+    }
+}
+
+/// The model clock of one direction of one link: when it is next free. Frames are stamped
+/// with model times as they cross it; the actual sending is not slowed, so real forwarding
+/// costs hide inside the modelled ones instead of adding to them (deadline accounting).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct LinkClock {
+    free_at: u64,
+}
+
+impl LinkClock {
+    /// Advances the clock for a message whose first and last packets are ready (at this end of
+    /// the link) at `first` and `last`, in `packets` packets of `hop` each. Returns when the
+    /// first and last packets are ready at the other end.
+    pub fn cross(&mut self, first: u64, last: u64, packets: u64, hop: u64) -> (u64, u64) {
+        let start = first.max(self.free_at);
+        let first_done = start + hop;
+        let last_done = (first_done + hop * packets.saturating_sub(1)).max(last + hop);
+        self.free_at = last_done;
+        (first_done, last_done)
+    }
+}
+
+/// Several identical buses shared round-robin: a transfer takes the one free first.
+#[derive(Clone, Debug)]
+pub struct Buses {
+    free_at: Vec<u64>,
+}
+
+impl Buses {
+    pub fn new(count: u32) -> Buses {
+        Buses {
+            free_at: vec![0; count.max(1) as usize],
+        }
+    }
+
+    /// Books a transfer of `duration` ready at `ready`; returns its completion time.
+    pub fn book(&mut self, ready: u64, duration: u64) -> u64 {
+        let (i, _) = self
+            .free_at
+            .iter()
+            .enumerate()
+            .min_by_key(|&(i, &t)| (t.max(ready), i))
+            .expect("at least one bus");
+        let done = self.free_at[i].max(ready) + duration;
+        self.free_at[i] = done;
+        done
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn paper() -> Model {
+        Model::new(ModelParams {
+            link: LinkModelKind::Paper,
+            ..ModelParams::default()
+        })
+    }
+
+    #[test]
+    fn formula_decomposes_into_hops() {
+        let m = paper();
+        // 2 row steps and 3 column steps of an 84-byte packet.
+        let total = m.base_ns() + 2 * m.hop_ns(true, 84) + 3 * m.hop_ns(false, 84);
+        assert_eq!(total, m.formula_ns(2, 3));
+        assert_eq!(m.formula_ns(0, 1), 610_000);
+    }
+
+    #[test]
+    fn long_messages_pipeline() {
+        let m = paper();
+        let (n, size) = m.packets(6400 + 40);
+        assert_eq!((n, size), (11, 1024));
+        let hop = m.hop_ns(false, size);
+        // Over 3 links in a row, the last packet arrives after (n + 3 - 1) packet times.
+        let mut links = [LinkClock::default(); 3];
+        let (mut first, mut last) = (0, 0);
+        for l in &mut links {
+            (first, last) = l.cross(first, last, n, hop);
+        }
+        assert_eq!(first, 3 * hop);
+        assert_eq!(last, (n + 2) * hop);
+    }
+
+    #[test]
+    fn busy_link_queues_the_next_message() {
+        let mut l = LinkClock::default();
+        assert_eq!(l.cross(0, 0, 1, 10), (10, 10));
+        assert_eq!(l.cross(0, 0, 1, 10), (20, 20));
+        assert_eq!(l.cross(100, 100, 1, 10), (110, 110));
+    }
+
+    #[test]
+    fn two_buses_take_turns() {
+        let mut b = Buses::new(2);
+        assert_eq!(b.book(0, 10), 10);
+        assert_eq!(b.book(0, 10), 10);
+        assert_eq!(b.book(0, 10), 20);
+    }
+
+    #[test]
+    fn none_adds_nothing_and_scale_multiplies() {
+        let none = Model::new(ModelParams::default());
+        assert_eq!(
+            none.hop_ns(true, 1024) + none.base_ns() + none.dma_ns(1 << 20),
+            0
+        );
+        let half = Model::new(ModelParams {
+            link: LinkModelKind::Paper,
+            time_scale: 0.5,
+            ..ModelParams::default()
+        });
+        assert_eq!(half.formula_ns(0, 1), 305_000);
+    }
+}

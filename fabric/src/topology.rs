@@ -1,0 +1,565 @@
+//! Which nodes a cluster has and how they are linked.
+//!
+//! The default, `magg`, reproduces the paper's machine: a host, 5 cards each with a fork node
+//! and 16 render nodes in a 4x4 block, 86 processes. The render nodes of all cards form one
+//! 2D mesh of 4 rows by 20 columns, the cards side by side, so each card's outer render nodes
+//! are linked to the neighbouring card's (the paper: "the FP and the outer 10 NPs are also
+//! connected to FPs or NPs on other GPUs"). Each fork node is linked to the top-left render
+//! node of its card (the entry point of its card's mesh) and to the fork nodes of the cards
+//! beside it; the host is linked to the first fork node, the paper's FP (0,-1). No node has
+//! more than 4 links, as a T800 has 4.
+//!
+//! ```text
+//!  host
+//!   |
+//!   F0 ------------- F1 ------------- F2 ------------- F3 ------------- F4
+//!   |                 |                 |                 |                 |
+//!  r00-r01-r02-r03 - r04-r05-r06-r07 - r08-r09-r10-r11 - r12-r13-r14-r15 - r16-r17-r18-r19
+//!   |   |   |   |     |   |   |   |     |   |   |   |     |   |   |   |     |   |   |   |
+//!  r20-r21-r22-r23 - r24-r25-r26-r27 - ...                                     ...     r39
+//!   |   |   |   |     |   |   |   |
+//!  r40-...
+//!   |
+//!  r60-r61-r62-r63 - r64-...                                                           r79
+//!   \______card 0____/ \____card 1_____/   ...                                \____card 4___/
+//! ```
+//!
+//! A render node's requests to its fork node travel the mesh, column first then row
+//! (dimension-ordered), to the card's entry node and up; the paper's transfer time grows
+//! with the row and column distance exactly so. Topology is data: `tiny` (one card of 2x2)
+//! and `grid:CARDSxROWSxCOLS` are presets, and a TOML file can describe any layout, listing
+//! nodes and links one by one or by a `[grid]` section, with the delay model's constants.
+
+use std::collections::{BTreeSet, VecDeque};
+
+use protocol::{NodeId, Role};
+use serde::{Deserialize, Serialize};
+
+use crate::model::ModelParams;
+
+/// Most links one node may have (a T800 transputer has four).
+pub const MAX_LINKS: usize = 4;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NodeSpec {
+    pub role: Role,
+    /// The card (the paper's GPU board) a fork or render node belongs to.
+    pub card: Option<u16>,
+    /// Position of a render node in the mesh.
+    pub row: Option<i32>,
+    pub col: Option<i32>,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Topology {
+    pub name: String,
+    pub cluster_id: String,
+    /// Indexed by node id; the host is node 0.
+    pub nodes: Vec<NodeSpec>,
+    pub links: Vec<[NodeId; 2]>,
+    pub model: ModelParams,
+    adjacency: Vec<Vec<NodeId>>,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum TopologyError {
+    #[error("topology file is not valid TOML: {0}")]
+    Toml(String),
+    #[error("unknown topology preset {0:?} (magg, tiny, or grid:CARDSxROWSxCOLS)")]
+    UnknownPreset(String),
+    #[error("invalid topology: {0}")]
+    Invalid(String),
+}
+
+#[derive(Deserialize, Serialize, Default)]
+#[serde(deny_unknown_fields)]
+struct File {
+    name: Option<String>,
+    cluster_id: Option<String>,
+    grid: Option<Grid>,
+    #[serde(default)]
+    node: Vec<FileNode>,
+    #[serde(default)]
+    link: Vec<FileLink>,
+    #[serde(default)]
+    model: ModelParams,
+}
+
+#[derive(Deserialize, Serialize, Clone, Copy)]
+#[serde(deny_unknown_fields)]
+struct Grid {
+    cards: u16,
+    rows: u16,
+    cols: u16,
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+struct FileNode {
+    id: NodeId,
+    role: String,
+    card: Option<u16>,
+    row: Option<i32>,
+    col: Option<i32>,
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+struct FileLink {
+    between: [NodeId; 2],
+}
+
+/// Largest topology accepted (node ids are 16-bit, 0xFFFF means broadcast).
+pub const MAX_NODES: usize = 4096;
+
+impl Topology {
+    /// A preset by name, or a TOML file's contents when `spec` names a file.
+    pub fn resolve(spec: &str) -> Result<Topology, TopologyError> {
+        if let Ok(t) = Topology::preset(spec) {
+            return Ok(t);
+        }
+        let path = std::path::Path::new(spec);
+        if path.exists() {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| TopologyError::Invalid(format!("{}: {e}", path.display())))?;
+            return Topology::from_toml(&text)
+                .map_err(|e| TopologyError::Invalid(format!("{}: {e}", path.display())));
+        }
+        Err(TopologyError::UnknownPreset(spec.to_string()))
+    }
+
+    pub fn preset(name: &str) -> Result<Topology, TopologyError> {
+        match name {
+            "magg" => Topology::grid("magg", 5, 4, 4),
+            "tiny" => Topology::grid("tiny", 1, 2, 2),
+            other => {
+                let dims = other
+                    .strip_prefix("grid:")
+                    .ok_or_else(|| TopologyError::UnknownPreset(other.into()))?;
+                let parts: Vec<u16> = dims
+                    .split('x')
+                    .map(|p| p.parse::<u16>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|_| TopologyError::UnknownPreset(other.into()))?;
+                match parts[..] {
+                    [cards, rows, cols] => Topology::grid(other, cards, rows, cols),
+                    _ => Err(TopologyError::UnknownPreset(other.into())),
+                }
+            }
+        }
+    }
+
+    /// The paper's layout, generalised: `cards` blocks of `rows` x `cols` render nodes side by
+    /// side in one mesh, a fork node per card.
+    pub fn grid(name: &str, cards: u16, rows: u16, cols: u16) -> Result<Topology, TopologyError> {
+        let file = File {
+            name: Some(name.into()),
+            grid: Some(Grid { cards, rows, cols }),
+            ..File::default()
+        };
+        Topology::from_file(file)
+    }
+
+    pub fn from_toml(text: &str) -> Result<Topology, TopologyError> {
+        let file: File = toml::from_str(text).map_err(|e| TopologyError::Toml(e.to_string()))?;
+        Topology::from_file(file)
+    }
+
+    fn from_file(file: File) -> Result<Topology, TopologyError> {
+        let invalid = |m: String| TopologyError::Invalid(m);
+        let name = file.name.clone().unwrap_or_else(|| "custom".into());
+        let (nodes, links) = match (file.grid, file.node.is_empty()) {
+            (Some(g), true) => grid_layout(g)?,
+            (Some(_), false) => {
+                return Err(invalid(
+                    "give either [grid] or [[node]] entries, not both".into(),
+                ));
+            }
+            (None, _) => {
+                let mut nodes = vec![None; file.node.len()];
+                for n in &file.node {
+                    let role = match n.role.as_str() {
+                        "host" => Role::Host,
+                        "fork" => Role::Fork,
+                        "render" => Role::Render,
+                        r => {
+                            return Err(invalid(format!(
+                                "node {}: unknown role {r:?} (host, fork, render)",
+                                n.id
+                            )));
+                        }
+                    };
+                    let slot = nodes.get_mut(n.id as usize).ok_or_else(|| {
+                        invalid(format!(
+                            "node ids must be 0..{}, found {}",
+                            file.node.len(),
+                            n.id
+                        ))
+                    })?;
+                    if slot.is_some() {
+                        return Err(invalid(format!("node {} is listed twice", n.id)));
+                    }
+                    *slot = Some(NodeSpec {
+                        role,
+                        card: n.card,
+                        row: n.row,
+                        col: n.col,
+                    });
+                }
+                let nodes: Vec<NodeSpec> = nodes
+                    .into_iter()
+                    .map(|n| n.expect("every slot filled"))
+                    .collect();
+                (nodes, file.link.iter().map(|l| l.between).collect())
+            }
+        };
+        let cluster_id = file.cluster_id.unwrap_or_else(|| name.clone());
+        let mut t = Topology {
+            name,
+            cluster_id,
+            nodes,
+            links,
+            model: file.model,
+            adjacency: Vec::new(),
+        };
+        t.validate()?;
+        Ok(t)
+    }
+
+    /// The topology as a TOML file (explicit nodes and links).
+    pub fn to_toml(&self) -> String {
+        let file = File {
+            name: Some(self.name.clone()),
+            cluster_id: Some(self.cluster_id.clone()),
+            grid: None,
+            node: self
+                .nodes
+                .iter()
+                .enumerate()
+                .map(|(id, n)| FileNode {
+                    id: id as NodeId,
+                    role: match n.role {
+                        Role::Host => "host",
+                        Role::Fork => "fork",
+                        Role::Render => "render",
+                    }
+                    .into(),
+                    card: n.card,
+                    row: n.row,
+                    col: n.col,
+                })
+                .collect(),
+            link: self
+                .links
+                .iter()
+                .map(|l| FileLink { between: *l })
+                .collect(),
+            model: self.model.clone(),
+        };
+        toml::to_string(&file).expect("a topology always serialises")
+    }
+
+    fn validate(&mut self) -> Result<(), TopologyError> {
+        let invalid = |m: String| Err(TopologyError::Invalid(m));
+        let n = self.nodes.len();
+        if n < 3 {
+            return invalid(
+                "a cluster needs a host, a fork node and a render node at least".into(),
+            );
+        }
+        if n > MAX_NODES {
+            return invalid(format!("{n} nodes is more than the {MAX_NODES} supported"));
+        }
+        if self.nodes[0].role != Role::Host
+            || self.nodes.iter().filter(|s| s.role == Role::Host).count() != 1
+        {
+            return invalid("node 0 must be the host, and the only one".into());
+        }
+        let cards: BTreeSet<u16> = self.nodes.iter().filter_map(|s| s.card).collect();
+        for (id, s) in self.nodes.iter().enumerate() {
+            if s.role != Role::Host && s.card.is_none() {
+                return invalid(format!("node {id} ({}) has no card", s.role));
+            }
+        }
+        for c in &cards {
+            let forks = self
+                .nodes
+                .iter()
+                .filter(|s| s.card == Some(*c) && s.role == Role::Fork)
+                .count();
+            if forks != 1 {
+                return invalid(format!(
+                    "card {c} has {forks} fork nodes; each card needs exactly one"
+                ));
+            }
+            if !self
+                .nodes
+                .iter()
+                .any(|s| s.card == Some(*c) && s.role == Role::Render)
+            {
+                return invalid(format!("card {c} has no render nodes"));
+            }
+        }
+        let mut adjacency = vec![Vec::new(); n];
+        let mut seen = BTreeSet::new();
+        for &[a, b] in &self.links {
+            if a as usize >= n || b as usize >= n {
+                return invalid(format!("link {a}-{b} names a node that does not exist"));
+            }
+            if a == b {
+                return invalid(format!("link {a}-{b} links a node to itself"));
+            }
+            if !seen.insert((a.min(b), a.max(b))) {
+                return invalid(format!("link {a}-{b} is listed twice"));
+            }
+            adjacency[a as usize].push(b);
+            adjacency[b as usize].push(a);
+        }
+        for (id, adj) in adjacency.iter_mut().enumerate() {
+            if adj.len() > MAX_LINKS {
+                return invalid(format!(
+                    "node {id} has {} links; a node has at most {MAX_LINKS}",
+                    adj.len()
+                ));
+            }
+            adj.sort_unstable();
+        }
+        // Connected?
+        let mut reached = vec![false; n];
+        let mut queue = VecDeque::from([0usize]);
+        reached[0] = true;
+        while let Some(x) = queue.pop_front() {
+            for &y in &adjacency[x] {
+                if !reached[y as usize] {
+                    reached[y as usize] = true;
+                    queue.push_back(y as usize);
+                }
+            }
+        }
+        if let Some(lost) = reached.iter().position(|r| !r) {
+            return invalid(format!("node {lost} cannot be reached from the host"));
+        }
+        self.model.check().map_err(TopologyError::Invalid)?;
+        self.adjacency = adjacency;
+        Ok(())
+    }
+
+    pub fn len(&self) -> usize {
+        self.nodes.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    pub fn neighbors(&self, id: NodeId) -> &[NodeId] {
+        &self.adjacency[id as usize]
+    }
+
+    pub fn role(&self, id: NodeId) -> Role {
+        self.nodes[id as usize].role
+    }
+
+    pub fn card(&self, id: NodeId) -> Option<u16> {
+        self.nodes[id as usize].card
+    }
+
+    pub fn ids_with(&self, role: Role) -> Vec<NodeId> {
+        (0..self.nodes.len() as NodeId)
+            .filter(|&i| self.role(i) == role)
+            .collect()
+    }
+
+    pub fn render_nodes(&self) -> Vec<NodeId> {
+        self.ids_with(Role::Render)
+    }
+
+    pub fn fork_nodes(&self) -> Vec<NodeId> {
+        self.ids_with(Role::Fork)
+    }
+
+    /// The fork node of a card.
+    pub fn fork_of_card(&self, card: u16) -> Option<NodeId> {
+        (0..self.nodes.len() as NodeId)
+            .find(|&i| self.role(i) == Role::Fork && self.card(i) == Some(card))
+    }
+
+    /// The fork node serving a render node (the one on its card).
+    pub fn fork_of(&self, id: NodeId) -> Option<NodeId> {
+        self.card(id).and_then(|c| self.fork_of_card(c))
+    }
+
+    /// The first fork node, the paper's FP (0,-1), which prepares the scene.
+    pub fn master_fork(&self) -> NodeId {
+        self.fork_nodes()[0]
+    }
+
+    pub fn cards(&self) -> Vec<u16> {
+        self.nodes
+            .iter()
+            .filter_map(|s| s.card)
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .collect()
+    }
+
+    /// Mesh position of a render node.
+    pub fn position(&self, id: NodeId) -> Option<(i32, i32)> {
+        let s = &self.nodes[id as usize];
+        Some((s.row?, s.col?))
+    }
+
+    /// A link between two render nodes of the same column runs along a row of the paper's
+    /// formula (d_row); every other link counts as a column step (d_col).
+    pub fn is_vertical(&self, a: NodeId, b: NodeId) -> bool {
+        match (self.position(a), self.position(b)) {
+            (Some((_, ca)), Some((_, cb))) => ca == cb,
+            _ => false,
+        }
+    }
+
+    /// Number of processes of each role: (fork nodes, render nodes).
+    pub fn counts(&self) -> (usize, usize) {
+        (self.fork_nodes().len(), self.render_nodes().len())
+    }
+
+    /// A short description: name, processes, links.
+    pub fn summary(&self) -> String {
+        let (f, r) = self.counts();
+        format!(
+            "{}: 1 host + {f} fork nodes + {r} render nodes = {} processes, {} links",
+            self.name,
+            self.nodes.len(),
+            self.links.len()
+        )
+    }
+}
+
+fn grid_layout(g: Grid) -> Result<(Vec<NodeSpec>, Vec<[NodeId; 2]>), TopologyError> {
+    if g.cards == 0 || g.rows == 0 || g.cols == 0 {
+        return Err(TopologyError::Invalid(
+            "a grid needs at least one card, row and column".into(),
+        ));
+    }
+    let total = 1 + g.cards as usize * (1 + g.rows as usize * g.cols as usize);
+    if total > MAX_NODES {
+        return Err(TopologyError::Invalid(format!(
+            "grid of {total} nodes is more than the {MAX_NODES} supported"
+        )));
+    }
+    let mut nodes = vec![NodeSpec {
+        role: Role::Host,
+        card: None,
+        row: None,
+        col: None,
+    }];
+    for k in 0..g.cards {
+        nodes.push(NodeSpec {
+            role: Role::Fork,
+            card: Some(k),
+            row: None,
+            col: None,
+        });
+    }
+    let first_render = nodes.len();
+    let width = g.cards as i32 * g.cols as i32;
+    let id_at =
+        |row: i32, col: i32| -> NodeId { (first_render + (row * width + col) as usize) as NodeId };
+    for row in 0..g.rows as i32 {
+        for col in 0..width {
+            nodes.push(NodeSpec {
+                role: Role::Render,
+                card: Some((col / g.cols as i32) as u16),
+                row: Some(row),
+                col: Some(col),
+            });
+        }
+    }
+    let mut links = vec![[0, 1]];
+    for k in 0..g.cards {
+        let fork = 1 + k;
+        links.push([fork, id_at(0, k as i32 * g.cols as i32)]);
+        if k + 1 < g.cards {
+            links.push([fork, fork + 1]);
+        }
+    }
+    for row in 0..g.rows as i32 {
+        for col in 0..width {
+            if col + 1 < width {
+                links.push([id_at(row, col), id_at(row, col + 1)]);
+            }
+            if row + 1 < g.rows as i32 {
+                links.push([id_at(row, col), id_at(row + 1, col)]);
+            }
+        }
+    }
+    Ok((nodes, links))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn magg_preset_is_the_papers_machine() {
+        let t = Topology::preset("magg").unwrap();
+        assert_eq!(t.len(), 86);
+        assert_eq!(t.counts(), (5, 80));
+        for id in 0..t.len() as NodeId {
+            assert!(t.neighbors(id).len() <= 4, "node {id}");
+        }
+        for card in t.cards() {
+            let members = t
+                .render_nodes()
+                .into_iter()
+                .filter(|&r| t.card(r) == Some(card))
+                .count();
+            assert_eq!(members, 16);
+        }
+        assert_eq!(t.neighbors(0), &[1]);
+        assert_eq!(t.master_fork(), 1);
+    }
+
+    #[test]
+    fn tiny_and_grids() {
+        let t = Topology::preset("tiny").unwrap();
+        assert_eq!(t.counts(), (1, 4));
+        let g = Topology::preset("grid:10x8x5").unwrap();
+        assert_eq!(g.counts(), (10, 400));
+        assert!(Topology::preset("grid:0x1x1").is_err());
+        assert!(Topology::preset("grid:2x2").is_err());
+    }
+
+    #[test]
+    fn toml_round_trip() {
+        let t = Topology::preset("magg").unwrap();
+        let again = Topology::from_toml(&t.to_toml()).unwrap();
+        assert_eq!(again.nodes, t.nodes);
+        assert_eq!(again.links, t.links);
+        assert_eq!(again.model, t.model);
+    }
+
+    #[test]
+    fn bad_files_say_what_is_wrong() {
+        let cases = [
+            ("this is = not toml [", "TOML"),
+            ("[grid]\ncards = 1\nrows = 1\ncols = 1\nbogus = 3", "bogus"),
+            (
+                "[[node]]\nid = 0\nrole = \"host\"\n[[node]]\nid = 1\nrole = \"fork\"\ncard = 0\n[[node]]\nid = 2\nrole = \"render\"\ncard = 0\n",
+                "reached",
+            ),
+            (
+                "[[node]]\nid = 0\nrole = \"host\"\n[[node]]\nid = 1\nrole = \"wizard\"\n[[node]]\nid = 2\nrole = \"render\"\ncard = 0",
+                "wizard",
+            ),
+            (
+                "[[node]]\nid = 0\nrole = \"host\"\n[[node]]\nid = 1\nrole = \"fork\"\ncard = 0\n[[node]]\nid = 2\nrole = \"render\"\ncard = 0\n[[link]]\nbetween = [0, 9]",
+                "does not exist",
+            ),
+        ];
+        for (text, needle) in cases {
+            let e = Topology::from_toml(text).unwrap_err().to_string();
+            assert!(e.contains(needle), "{e:?} should mention {needle:?}");
+        }
+    }
+}

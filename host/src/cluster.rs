@@ -1,0 +1,166 @@
+//! Starting a cluster from the host: spawning it locally, or waiting for nodes started by
+//! hand (or by containers) to join, then stopping it cleanly.
+
+use std::time::Duration;
+
+use fabric::{
+    Topology,
+    cluster::{Formed, form},
+    model::LinkModelKind,
+};
+use protocol::{Message, Secret};
+use tokio::net::TcpListener;
+
+use crate::spawn::LocalCluster;
+
+#[derive(Clone, Debug)]
+pub enum ClusterMode {
+    /// Start the nodes as local processes.
+    Spawn,
+    /// Listen at this address for nodes started elsewhere.
+    Listen(String),
+}
+
+#[derive(Clone, Debug)]
+pub struct ClusterConfig {
+    pub mode: ClusterMode,
+    pub topology: Topology,
+    pub secret: Secret,
+    pub cluster_id: String,
+    pub join_timeout: Duration,
+    /// Log level of spawned nodes.
+    pub node_log: String,
+}
+
+impl ClusterConfig {
+    pub fn with_model(
+        mut self,
+        link: Option<LinkModelKind>,
+        time_scale: Option<f64>,
+    ) -> ClusterConfig {
+        if let Some(l) = link {
+            self.topology.model.link = l;
+        }
+        if let Some(s) = time_scale {
+            self.topology.model.time_scale = s;
+        }
+        self
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error("cannot listen at {addr}: {source}")]
+    Listen {
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Spawn(std::io::Error),
+    #[error("the cluster did not form: {0}")]
+    Form(#[from] fabric::cluster::ClusterError),
+}
+
+pub struct Cluster {
+    pub formed: Formed,
+    pub local: Option<LocalCluster>,
+}
+
+/// Binds the host's port: loopback for a spawned cluster, the given address otherwise.
+pub async fn bind(config: &ClusterConfig) -> Result<TcpListener, StartError> {
+    let addr = match &config.mode {
+        ClusterMode::Spawn => "127.0.0.1:0".to_string(),
+        ClusterMode::Listen(a) => a.clone(),
+    };
+    TcpListener::bind(&addr)
+        .await
+        .map_err(|source| StartError::Listen { addr, source })
+}
+
+pub async fn start(
+    config: &ClusterConfig,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Cluster, StartError> {
+    let listener = bind(config).await?;
+    start_on(listener, config, progress).await
+}
+
+/// Forms the cluster on an already bound port (spawning the nodes first in spawn mode).
+pub async fn start_on(
+    listener: TcpListener,
+    config: &ClusterConfig,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Cluster, StartError> {
+    let bound = listener.local_addr().map_err(|source| StartError::Listen {
+        addr: "?".into(),
+        source,
+    })?;
+    let local = match config.mode {
+        ClusterMode::Spawn => {
+            let (f, r) = config.topology.counts();
+            Some(
+                LocalCluster::spawn(
+                    f,
+                    r,
+                    &bound.to_string(),
+                    &config.secret,
+                    &config.cluster_id,
+                    &config.node_log,
+                )
+                .map_err(StartError::Spawn)?,
+            )
+        }
+        ClusterMode::Listen(_) => {
+            tracing::info!(
+                "waiting for {} to join at {bound}",
+                config.topology.summary()
+            );
+            None
+        }
+    };
+    let formed = form(
+        listener,
+        config.topology.clone(),
+        config.secret.clone(),
+        &config.cluster_id,
+        config.join_timeout,
+        progress,
+    )
+    .await?;
+    Ok(Cluster { formed, local })
+}
+
+impl Cluster {
+    /// Tells every node to stop and waits for local processes to exit (killing stragglers).
+    pub async fn shutdown(mut self, reason: &str) -> bool {
+        for m in &self.formed.members {
+            let _ = self.formed.fabric.send_control(
+                m.node,
+                &Message::Shutdown {
+                    reason: reason.into(),
+                },
+            );
+        }
+        // Give the frames a moment to leave before the connections drop.
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        match self.local.take() {
+            Some(mut l) => {
+                // Nodes wait for the host to hang up before they exit.
+                self.formed.fabric.hang_up();
+                tokio::task::spawn_blocking(move || {
+                    let ok = l.wait(Duration::from_secs(10));
+                    l.kill();
+                    ok
+                })
+                .await
+                .unwrap_or(false)
+            }
+            // Nodes elsewhere see the host's connections end when this process exits, after
+            // the host, so that whoever watches (compose) takes the host's exit status.
+            None => {
+                self.formed.fabric.close();
+                true
+            }
+        }
+    }
+}

@@ -1,0 +1,199 @@
+//! `magg-host gallery DIR -o sheet.png`: every scene of a folder rendered small, on one
+//! contact sheet with its name underneath, to check many scenes at a glance (wrong-handed
+//! normal maps, upside-down textures, missing transforms show up there).
+
+use std::{
+    path::{Path, PathBuf},
+    sync::atomic::AtomicBool,
+};
+
+use plotters::prelude::*;
+use renderer::{IntegratorKind, PrepareOptions, RenderSettings, render::render_image};
+
+#[derive(Clone, Debug)]
+pub struct GalleryConfig {
+    pub dir: PathBuf,
+    pub output: PathBuf,
+    pub size: u32,
+    pub spp: u32,
+    pub integrator: IntegratorKind,
+    pub columns: u32,
+    pub threads: usize,
+}
+
+/// One tile of the sheet: a scene's picture, or why there is none.
+pub struct Entry {
+    pub name: String,
+    pub pixels: Option<Vec<[f32; 3]>>,
+    pub note: String,
+    pub bad_samples: u64,
+}
+
+/// Every `.gltf` and `.glb` under `dir`, in name order.
+pub fn scene_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d)? {
+            let p = e?.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if matches!(
+                p.extension()
+                    .and_then(|e| e.to_str())
+                    .map(str::to_ascii_lowercase)
+                    .as_deref(),
+                Some("gltf" | "glb")
+            ) {
+                out.push(p);
+            }
+        }
+    }
+    out.sort_by_key(|p| p.file_name().map(|n| n.to_string_lossy().to_lowercase()));
+    Ok(out)
+}
+
+/// Renders one scene small; never fails, the entry says what went wrong.
+pub fn render_entry(path: &Path, c: &GalleryConfig) -> Entry {
+    let name = path
+        .file_stem()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let loaded = match scene_io::load_gltf(path) {
+        Ok(l) => l,
+        Err(e) => {
+            let why = match &e {
+                scene_io::LoadError::UnsupportedRequiredExtension { extension, .. } => {
+                    format!("refused: requires {extension}")
+                }
+                other => other.to_string(),
+            };
+            return Entry {
+                name,
+                pixels: None,
+                note: why,
+                bad_samples: 0,
+            };
+        }
+    };
+    let (scene, data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
+    let settings = RenderSettings {
+        width: c.size,
+        height: c.size,
+        spp: c.spp,
+        integrator: c.integrator,
+        max_depth: 32,
+        ..RenderSettings::default()
+    };
+    let camera = match scene.camera(None, 1.0) {
+        Ok(cam) => cam,
+        Err(e) => {
+            return Entry {
+                name,
+                pixels: None,
+                note: e.to_string(),
+                bad_samples: 0,
+            };
+        }
+    };
+    match render_image(
+        &scene,
+        &data,
+        &camera,
+        &settings,
+        c.threads,
+        16,
+        &AtomicBool::new(false),
+        &|_, _| {},
+    ) {
+        Ok((img, stats)) => Entry {
+            name,
+            pixels: Some(img.pixels),
+            note: if loaded.warnings.is_empty() {
+                String::new()
+            } else {
+                format!("{} warning(s)", loaded.warnings.len())
+            },
+            bad_samples: stats.bad_samples,
+        },
+        Err(e) => Entry {
+            name,
+            pixels: None,
+            note: e.to_string(),
+            bad_samples: 0,
+        },
+    }
+}
+
+/// Lays the entries out on a sheet and writes it as PNG.
+pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), String> {
+    let cols = c.columns.max(1);
+    let rows = (entries.len() as u32).div_ceil(cols).max(1);
+    let label = 34;
+    let (cell_w, cell_h) = (c.size + 8, c.size + label);
+    let (w, h) = (cols * cell_w + 8, rows * cell_h + 8);
+    let mut buf = vec![40u8; (w * h * 3) as usize];
+    for (i, e) in entries.iter().enumerate() {
+        let (cx, cy) = (
+            8 + (i as u32 % cols) * cell_w,
+            8 + (i as u32 / cols) * cell_h,
+        );
+        if let Some(px) = &e.pixels {
+            for y in 0..c.size {
+                for x in 0..c.size {
+                    let p = px[(y * c.size + x) as usize];
+                    let at = (((cy + y) * w + cx + x) * 3) as usize;
+                    for k in 0..3 {
+                        buf[at + k] = scene_io::image_io::to_srgb8(p[k]);
+                    }
+                }
+            }
+        }
+    }
+    let have_font = crate::plot::ensure_font();
+    if have_font {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        for (i, e) in entries.iter().enumerate() {
+            let (cx, cy) = (
+                (8 + (i as u32 % cols) * cell_w) as i32,
+                (8 + (i as u32 / cols) * cell_h) as i32,
+            );
+            let style = ("sans-serif", 13).into_font().color(&WHITE);
+            let name: String = e.name.chars().take(26).collect();
+            root.draw_text(&name, &style, (cx, cy + c.size as i32 + 2))
+                .map_err(|e| e.to_string())?;
+            let mut note = e.note.clone();
+            if e.bad_samples > 0 {
+                note = format!("{} NaN/inf samples! {note}", e.bad_samples);
+            }
+            if !note.is_empty() {
+                let color = if e.pixels.is_none() || e.bad_samples > 0 {
+                    RGBColor(255, 120, 100)
+                } else {
+                    RGBColor(180, 180, 180)
+                };
+                let small = ("sans-serif", 11).into_font().color(&color);
+                let note: String = note.chars().take(32).collect();
+                root.draw_text(&note, &small, (cx, cy + c.size as i32 + 17))
+                    .map_err(|e| e.to_string())?;
+            }
+        }
+        root.present().map_err(|e| e.to_string())?;
+    }
+    crate::plot::write_png(&c.output, w, h, &buf)
+}
+
+/// Renders every scene of the folder and writes the sheet; returns the entries.
+pub fn gallery(c: &GalleryConfig, progress: &dyn Fn(&str)) -> Result<Vec<Entry>, String> {
+    let files = scene_files(&c.dir).map_err(|e| format!("{}: {e}", c.dir.display()))?;
+    if files.is_empty() {
+        return Err(format!("{}: no .gltf or .glb files", c.dir.display()));
+    }
+    let mut entries = Vec::new();
+    for f in &files {
+        progress(&f.display().to_string());
+        entries.push(render_entry(f, c));
+    }
+    write_sheet(&entries, c)?;
+    Ok(entries)
+}

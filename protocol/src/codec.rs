@@ -1,0 +1,180 @@
+//! Reading and writing whole frames on a byte stream.
+//!
+//! The reader checks the header before allocating anything, reads the raw data part
+//! straight into aligned words, and gives a started frame a deadline to finish arriving, so a
+//! slow or silent peer cannot hold memory or a task forever.
+
+use std::time::Duration;
+
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+
+use crate::frame::{Frame, FrameHeader, HEADER_LEN, HeaderError};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    #[error("connection closed")]
+    Closed,
+    #[error("connection closed in the middle of a frame")]
+    Truncated,
+    #[error("{0}")]
+    Header(#[from] HeaderError),
+    #[error("frame did not finish arriving within {0:?}")]
+    Timeout(Duration),
+    #[error("the peer was silent for {0:?} (no frame, not even a heartbeat)")]
+    Silent(Duration),
+    #[error("i/o error: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+pub struct FrameReader<R> {
+    inner: R,
+    /// Time a frame may take to arrive once its first byte has.
+    pub frame_deadline: Duration,
+    /// Time the peer may stay silent between frames (`None`: forever). Peers that send
+    /// heartbeats set this to notice a peer that vanished without closing the connection.
+    pub idle_deadline: Option<Duration>,
+    /// Bytes read so far, for statistics.
+    pub bytes_read: u64,
+}
+
+impl<R: AsyncRead + Unpin> FrameReader<R> {
+    pub fn new(inner: R) -> FrameReader<R> {
+        FrameReader {
+            inner,
+            frame_deadline: Duration::from_secs(30),
+            idle_deadline: None,
+            bytes_read: 0,
+        }
+    }
+
+    /// The next frame; `Closed` on a clean end of stream between frames.
+    pub async fn read(&mut self) -> Result<Frame, ReadError> {
+        let mut first = [0u8; 1];
+        let n = match self.idle_deadline {
+            Some(d) => tokio::time::timeout(d, self.inner.read(&mut first))
+                .await
+                .map_err(|_| ReadError::Silent(d))??,
+            None => self.inner.read(&mut first).await?,
+        };
+        if n == 0 {
+            return Err(ReadError::Closed);
+        }
+        let deadline = self.frame_deadline;
+        match tokio::time::timeout(deadline, self.read_rest(first[0])).await {
+            Ok(r) => r,
+            Err(_) => Err(ReadError::Timeout(deadline)),
+        }
+    }
+
+    async fn read_rest(&mut self, first: u8) -> Result<Frame, ReadError> {
+        let mut hb = [0u8; HEADER_LEN];
+        hb[0] = first;
+        read_exact(&mut self.inner, &mut hb[1..]).await?;
+        let header = FrameHeader::decode(&hb)?;
+        let mut meta = vec![0u8; header.meta_len as usize];
+        read_exact(&mut self.inner, &mut meta).await?;
+        let mut data = vec![0u32; header.data_len as usize / 4].into_boxed_slice();
+        read_exact(&mut self.inner, bytemuck::cast_slice_mut(&mut data)).await?;
+        self.bytes_read += header.wire_len() as u64;
+        Ok(Frame { header, meta, data })
+    }
+
+    pub fn into_inner(self) -> R {
+        self.inner
+    }
+}
+
+async fn read_exact<R: AsyncRead + Unpin>(r: &mut R, buf: &mut [u8]) -> Result<(), ReadError> {
+    match r.read_exact(buf).await {
+        Ok(_) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Err(ReadError::Truncated),
+        Err(e) => Err(ReadError::Io(e)),
+    }
+}
+
+pub struct FrameWriter<W> {
+    inner: W,
+    pub bytes_written: u64,
+}
+
+impl<W: AsyncWrite + Unpin> FrameWriter<W> {
+    pub fn new(inner: W) -> FrameWriter<W> {
+        FrameWriter {
+            inner,
+            bytes_written: 0,
+        }
+    }
+
+    pub async fn write(&mut self, frame: &Frame) -> std::io::Result<()> {
+        let mut head = Vec::with_capacity(HEADER_LEN + frame.meta.len());
+        head.extend_from_slice(&frame.header.encode());
+        head.extend_from_slice(&frame.meta);
+        self.inner.write_all(&head).await?;
+        if !frame.data.is_empty() {
+            self.inner
+                .write_all(bytemuck::cast_slice(&frame.data))
+                .await?;
+        }
+        self.inner.flush().await?;
+        self.bytes_written += frame.wire_len() as u64;
+        Ok(())
+    }
+
+    pub fn into_inner(self) -> W {
+        self.inner
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::message::Message;
+
+    #[tokio::test]
+    async fn frames_cross_a_stream_whole() {
+        let (a, b) = tokio::io::duplex(1 << 16);
+        let mut w = FrameWriter::new(a);
+        let mut r = FrameReader::new(b);
+        let f = Frame::new(3, 9, &Message::Go, vec![1u32, 2, 3].into_boxed_slice()).with_tag(77);
+        w.write(&f).await.unwrap();
+        assert_eq!(r.read().await.unwrap(), f);
+        drop(w);
+        assert!(matches!(r.read().await, Err(ReadError::Closed)));
+    }
+
+    #[tokio::test]
+    async fn oversized_length_is_refused_before_allocating() {
+        let (mut a, b) = tokio::io::duplex(1 << 16);
+        let mut hb = Frame::new(1, 2, &Message::Go, Box::new([])).header.encode();
+        hb[16..20].copy_from_slice(&u32::MAX.to_le_bytes());
+        a.write_all(&hb).await.unwrap();
+        let mut r = FrameReader::new(b);
+        assert!(matches!(
+            r.read().await,
+            Err(ReadError::Header(HeaderError::DataTooLarge(_)))
+        ));
+    }
+
+    #[tokio::test]
+    async fn a_stalled_frame_times_out() {
+        let (mut a, b) = tokio::io::duplex(1 << 16);
+        a.write_all(b"MAG").await.unwrap();
+        let mut r = FrameReader::new(b);
+        r.frame_deadline = Duration::from_millis(50);
+        assert!(matches!(r.read().await, Err(ReadError::Timeout(_))));
+    }
+
+    #[tokio::test]
+    async fn a_silent_peer_times_out_only_with_an_idle_deadline() {
+        let (_a, b) = tokio::io::duplex(1 << 16);
+        let mut r = FrameReader::new(b);
+        assert!(
+            tokio::time::timeout(Duration::from_millis(100), r.read())
+                .await
+                .is_err(),
+            "without an idle deadline the reader waits"
+        );
+        r.idle_deadline = Some(Duration::from_millis(50));
+        assert!(matches!(r.read().await, Err(ReadError::Silent(_))));
+    }
+}

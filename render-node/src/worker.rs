@@ -1,0 +1,200 @@
+//! The rendering threads of a render node: ask the host for a subscreen, render it scan line
+//! by scan line, send each line to the fork node, ask again. They run apart from the
+//! node's networking, which keeps forwarding other nodes' packets meanwhile.
+
+use std::{
+    collections::HashMap,
+    sync::{
+        Arc, Mutex,
+        atomic::{AtomicU32, AtomicU64, Ordering},
+    },
+    time::{Duration, Instant},
+};
+
+use fabric::{Fabric, Route};
+use protocol::{JobSpec, Message, NodeId, Rect};
+use renderer::{Scene, render::render_pixel, trace::Tracer};
+
+use crate::cache::DemandCache;
+
+/// A subscreen being rendered: rows `next_row..end_row` (relative to `rect`) are still to do.
+/// The host may ask to have the tail back; `end_row` then moves up.
+pub struct Active {
+    pub rect: Rect,
+    pub next_row: AtomicU32,
+    pub end_row: AtomicU32,
+}
+
+impl Active {
+    /// Gives back the unbegun second half of the remaining rows; returns the first row given
+    /// back (the end, when there is nothing to give).
+    pub fn give_back(&self) -> u32 {
+        let next = self.next_row.load(Ordering::SeqCst);
+        let end = self.end_row.load(Ordering::SeqCst);
+        if end <= next + 1 {
+            return end;
+        }
+        let mid = next + (end - next).div_ceil(2);
+        match self
+            .end_row
+            .compare_exchange(end, mid, Ordering::SeqCst, Ordering::SeqCst)
+        {
+            Ok(_) => mid,
+            Err(now) => now,
+        }
+    }
+}
+
+#[derive(Default)]
+pub struct WorkStats {
+    pub subscreens: AtomicU32,
+    pub rows: AtomicU64,
+    pub pixels: AtomicU64,
+    pub samples: AtomicU64,
+    pub rays: AtomicU64,
+    pub render_ns: AtomicU64,
+    pub idle_ns: AtomicU64,
+}
+
+pub type ActiveMap = Arc<Mutex<HashMap<u32, Arc<Active>>>>;
+
+pub struct Worker {
+    pub fabric: Fabric,
+    pub runtime: tokio::runtime::Handle,
+    pub scene: Arc<Scene>,
+    pub job: Arc<JobSpec>,
+    pub cache: Arc<DemandCache>,
+    pub fork: NodeId,
+    pub active: ActiveMap,
+    pub stats: Arc<WorkStats>,
+}
+
+/// A request for work waits as long as the render lasts: an idle node is held until the end,
+/// in case a lost node's work comes back. (A lost host is noticed on the control connection.)
+const ASK_TIMEOUT: Duration = Duration::from_secs(7 * 24 * 3600);
+
+impl Worker {
+    /// Renders subscreens until the host has no more; returns an error message on failure.
+    pub fn run(&self) -> Result<(), String> {
+        let tracer = Tracer::new(&self.scene, self.cache.as_ref());
+        let mut trace_stats = renderer::trace::TraceStats::default();
+        let mut finished = None;
+        loop {
+            let t0 = Instant::now();
+            let f = self.fabric.clone();
+            let reply = self
+                .runtime
+                .block_on(async move {
+                    f.request(
+                        0,
+                        &Message::SubscreenRequest { finished },
+                        Box::new([]),
+                        Route::Mesh,
+                        ASK_TIMEOUT,
+                    )
+                    .await
+                })
+                .map_err(|e| format!("asking the host for work: {e}"))?;
+            self.stats
+                .idle_ns
+                .fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            let (id, rect) = match reply.message() {
+                Ok(Message::Subscreen { id, rect }) => (id, rect),
+                Ok(Message::NoMoreWork) => break,
+                other => {
+                    return Err(format!(
+                        "unexpected answer to a subscreen request: {other:?}"
+                    ));
+                }
+            };
+            let t1 = Instant::now();
+            let active = Arc::new(Active {
+                rect,
+                next_row: AtomicU32::new(0),
+                end_row: AtomicU32::new(rect.height),
+            });
+            self.active
+                .lock()
+                .expect("active lock")
+                .insert(id, active.clone());
+            let result = self.render_subscreen(&tracer, id, &active, &mut trace_stats);
+            self.active.lock().expect("active lock").remove(&id);
+            self.cache.flush_thread_counts();
+            result.map_err(|e| format!("rendering subscreen {id}: {e}"))?;
+            self.stats
+                .render_ns
+                .fetch_add(t1.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            self.stats.subscreens.fetch_add(1, Ordering::Relaxed);
+            finished = Some(id);
+        }
+        let t = tracer.stats();
+        self.stats.rays.fetch_add(t.rays(), Ordering::Relaxed);
+        self.stats
+            .samples
+            .fetch_add(trace_stats.samples, Ordering::Relaxed);
+        Ok(())
+    }
+
+    fn render_subscreen(
+        &self,
+        tracer: &Tracer<DemandCache>,
+        id: u32,
+        active: &Active,
+        trace_stats: &mut renderer::trace::TraceStats,
+    ) -> Result<(), String> {
+        let rect = active.rect;
+        let settings = &self.job.settings;
+        let mut line: Vec<[f32; 3]> = Vec::with_capacity(rect.width as usize);
+        loop {
+            let row = active.next_row.fetch_add(1, Ordering::SeqCst);
+            if row >= active.end_row.load(Ordering::SeqCst) {
+                return Ok(());
+            }
+            let y = rect.y + row;
+            line.clear();
+            for x in rect.x..rect.x + rect.width {
+                self.cache.tick();
+                let px = render_pixel(tracer, &self.job.camera, settings, x, y, trace_stats)
+                    .map_err(|e| e.to_string())?;
+                line.push(px);
+            }
+            let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(&line).into();
+            let msg = Message::Pixels {
+                subscreen: id,
+                y,
+                x: rect.x,
+                width: rect.width,
+            };
+            self.fabric
+                .send(self.fork, &msg, words, 0)
+                .map_err(|e| e.to_string())?;
+            self.stats.rows.fetch_add(1, Ordering::Relaxed);
+            self.stats
+                .pixels
+                .fetch_add(rect.width as u64, Ordering::Relaxed);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn give_back_halves_the_rest_and_never_the_row_in_hand() {
+        let a = Active {
+            rect: Rect {
+                x: 0,
+                y: 0,
+                width: 4,
+                height: 10,
+            },
+            next_row: AtomicU32::new(2),
+            end_row: AtomicU32::new(10),
+        };
+        assert_eq!(a.give_back(), 6);
+        assert_eq!(a.end_row.load(Ordering::SeqCst), 6);
+        a.next_row.store(5, Ordering::SeqCst);
+        assert_eq!(a.give_back(), 6, "one row left: nothing to give");
+    }
+}

@@ -1,0 +1,699 @@
+//! Chunks: the unit of shape data that is cached and moved between nodes.
+//!
+//! A chunk is a spatially coherent piece of one mesh primitive (at most a configured number
+//! of triangles) with its own wide BVH, stored as one flat, position-independent byte block:
+//!
+//! | section            | type             | count        |
+//! |--------------------|------------------|--------------|
+//! | header             | [`ChunkHeader`]  | 1            |
+//! | BVH nodes          | `CwBvhNode` (80 B) | node_count |
+//! | triangle positions | `[f32; 9]`       | tri_count    |
+//! | triangle vertices  | `[u32; 3]`       | tri_count    |
+//! | normals            | `[f32; 3]`       | vertex_count |
+//! | uv0, uv1 (if flag) | `[f32; 2]`       | vertex_count |
+//! | tangents (if flag) | `[f32; 4]`       | vertex_count |
+//! | colours (if flag)  | `[f32; 4]`       | vertex_count |
+//!
+//! All fields are little-endian 4-byte words, so the block is valid wherever it lands as long
+//! as it sits in 4-byte aligned memory, which [`Chunk`] guarantees by storing words. Triangles
+//! are stored in BVH leaf order, so a leaf slot is a triangle index with no indirection.
+//! [`Chunk::from_words`] validates bytes from elsewhere once; after that, every access is a
+//! cast.
+
+use bytemuck::{Pod, Zeroable};
+use glam::{Vec2, Vec3, Vec3A, Vec4};
+use obvhs::{aabb::Aabb, cwbvh::node::CwBvhNode};
+
+use crate::{
+    bvh::{self, NodeError, Visit},
+    ray::RayQuery,
+    triangle::{self, TriHit},
+};
+
+pub const CHUNK_MAGIC: u32 = u32::from_le_bytes(*b"MCHK");
+pub const CHUNK_VERSION: u32 = 1;
+
+pub const FLAG_UV0: u32 = 1;
+pub const FLAG_UV1: u32 = 2;
+pub const FLAG_TANGENTS: u32 = 4;
+pub const FLAG_COLORS: u32 = 8;
+pub const FLAG_NORMALS: u32 = 16;
+const KNOWN_FLAGS: u32 = FLAG_UV0 | FLAG_UV1 | FLAG_TANGENTS | FLAG_COLORS | FLAG_NORMALS;
+
+pub const NO_LIGHT: u32 = u32::MAX;
+
+#[derive(Clone, Copy, Debug, Pod, Zeroable, PartialEq)]
+#[repr(C)]
+pub struct ChunkHeader {
+    pub magic: u32,
+    pub version: u32,
+    pub chunk_id: u32,
+    pub material: u32,
+    pub node_count: u32,
+    pub tri_count: u32,
+    pub vertex_count: u32,
+    pub flags: u32,
+    /// Index in the scene's light list of this chunk's first triangle, when the material
+    /// emits; triangle `i` is light `light_base + i`.
+    pub light_base: u32,
+    pub mesh_id: u32,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+}
+
+const HEADER_WORDS: usize = size_of::<ChunkHeader>() / 4;
+const NODE_WORDS: usize = size_of::<CwBvhNode>() / 4;
+
+/// Word offsets of each section, derived from the header.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Layout {
+    nodes: usize,
+    positions: usize,
+    vertices: usize,
+    normals: usize,
+    uv0: usize,
+    uv1: usize,
+    tangents: usize,
+    colors: usize,
+    end: usize,
+}
+
+impl Layout {
+    fn of(h: &ChunkHeader) -> Option<Layout> {
+        let tris = h.tri_count as usize;
+        let verts = h.vertex_count as usize;
+        let mut at = HEADER_WORDS;
+        let mut take = |words: usize| -> Option<usize> {
+            let start = at;
+            at = at.checked_add(words)?;
+            Some(start)
+        };
+        let flag = |f: u32, words: usize| if h.flags & f != 0 { words } else { 0 };
+        let nodes = take((h.node_count as usize).checked_mul(NODE_WORDS)?)?;
+        let positions = take(tris.checked_mul(9)?)?;
+        let vertices = take(tris.checked_mul(3)?)?;
+        let normals = take(flag(FLAG_NORMALS, verts.checked_mul(3)?))?;
+        let uv0 = take(flag(FLAG_UV0, verts.checked_mul(2)?))?;
+        let uv1 = take(flag(FLAG_UV1, verts.checked_mul(2)?))?;
+        let tangents = take(flag(FLAG_TANGENTS, verts.checked_mul(4)?))?;
+        let colors = take(flag(FLAG_COLORS, verts.checked_mul(4)?))?;
+        Some(Layout {
+            nodes,
+            positions,
+            vertices,
+            normals,
+            uv0,
+            uv1,
+            tangents,
+            colors,
+            end: at,
+        })
+    }
+}
+
+/// Why a chunk's bytes were refused.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ChunkError {
+    #[error("chunk is {0} bytes, shorter than its header")]
+    TooShort(usize),
+    #[error("chunk length {0} is not a multiple of 4")]
+    Unaligned(usize),
+    #[error("not a chunk (bad magic {0:#x})")]
+    BadMagic(u32),
+    #[error("chunk format version {0}, expected {CHUNK_VERSION}")]
+    BadVersion(u32),
+    #[error("chunk has unknown flags {0:#x}")]
+    BadFlags(u32),
+    #[error("chunk sections need {expected} bytes, the block has {actual}")]
+    BadLength { expected: usize, actual: usize },
+    #[error("chunk BVH: {0}")]
+    Nodes(#[from] NodeError),
+    #[error("chunk triangle {tri} uses vertex {vertex}, but the chunk has {count}")]
+    VertexOutOfRange { tri: usize, vertex: u32, count: u32 },
+    #[error("chunk holds a non-finite value")]
+    NonFinite,
+}
+
+/// One chunk, in its wire layout, in 4-byte aligned memory.
+#[derive(Clone, PartialEq)]
+pub struct Chunk {
+    words: Box<[u32]>,
+    layout: Layout,
+}
+
+impl std::fmt::Debug for Chunk {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Chunk")
+            .field("header", self.header())
+            .finish()
+    }
+}
+
+impl Chunk {
+    /// Takes ownership of words received from elsewhere and checks every offset, index and
+    /// value once, so that later access can never read out of bounds or loop.
+    pub fn from_words(words: Box<[u32]>) -> Result<Chunk, ChunkError> {
+        if words.len() < HEADER_WORDS {
+            return Err(ChunkError::TooShort(words.len() * 4));
+        }
+        let header: ChunkHeader =
+            *bytemuck::from_bytes(bytemuck::cast_slice(&words[..HEADER_WORDS]));
+        if header.magic != CHUNK_MAGIC {
+            return Err(ChunkError::BadMagic(header.magic));
+        }
+        if header.version != CHUNK_VERSION {
+            return Err(ChunkError::BadVersion(header.version));
+        }
+        if header.flags & !KNOWN_FLAGS != 0 {
+            return Err(ChunkError::BadFlags(header.flags));
+        }
+        let layout = Layout::of(&header).ok_or(ChunkError::BadLength {
+            expected: usize::MAX,
+            actual: words.len() * 4,
+        })?;
+        if layout.end != words.len() {
+            return Err(ChunkError::BadLength {
+                expected: layout.end * 4,
+                actual: words.len() * 4,
+            });
+        }
+        let chunk = Chunk { words, layout };
+        let floats: &[f32] = bytemuck::cast_slice(&chunk.words[layout.positions..layout.vertices]);
+        let attr: &[f32] = bytemuck::cast_slice(&chunk.words[layout.normals..layout.end]);
+        let bounds = header.bounds_min.iter().chain(header.bounds_max.iter());
+        if !floats
+            .iter()
+            .chain(attr)
+            .chain(bounds)
+            .all(|v| v.is_finite())
+        {
+            return Err(ChunkError::NonFinite);
+        }
+        for (tri, idx) in chunk.tri_vertices().iter().enumerate() {
+            for &vertex in idx {
+                if vertex >= header.vertex_count {
+                    return Err(ChunkError::VertexOutOfRange {
+                        tri,
+                        vertex,
+                        count: header.vertex_count,
+                    });
+                }
+            }
+        }
+        bvh::validate_nodes(chunk.nodes(), header.tri_count as usize)?;
+        Ok(chunk)
+    }
+
+    /// Bytes of a chunk as received (any alignment): copied once into aligned words.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Chunk, ChunkError> {
+        if !bytes.len().is_multiple_of(4) {
+            return Err(ChunkError::Unaligned(bytes.len()));
+        }
+        let words: Box<[u32]> = bytes
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        Chunk::from_words(words)
+    }
+
+    pub fn words(&self) -> &[u32] {
+        &self.words
+    }
+
+    pub fn as_bytes(&self) -> &[u8] {
+        bytemuck::cast_slice(&self.words)
+    }
+
+    pub fn byte_len(&self) -> usize {
+        self.words.len() * 4
+    }
+
+    pub fn header(&self) -> &ChunkHeader {
+        bytemuck::from_bytes(bytemuck::cast_slice(&self.words[..HEADER_WORDS]))
+    }
+
+    pub fn nodes(&self) -> &[CwBvhNode] {
+        bytemuck::cast_slice(&self.words[self.layout.nodes..self.layout.positions])
+    }
+
+    pub fn tri_positions(&self) -> &[[f32; 9]] {
+        bytemuck::cast_slice(&self.words[self.layout.positions..self.layout.vertices])
+    }
+
+    pub fn tri_vertices(&self) -> &[[u32; 3]] {
+        bytemuck::cast_slice(&self.words[self.layout.vertices..self.layout.normals])
+    }
+
+    fn section<T: Pod>(&self, start: usize, end: usize) -> &[T] {
+        bytemuck::cast_slice(&self.words[start..end])
+    }
+
+    pub fn tri_count(&self) -> u32 {
+        self.header().tri_count
+    }
+
+    /// Closest hit in (0, tmax) within this chunk.
+    #[inline]
+    pub fn intersect(&self, q: &RayQuery, tmax: &mut f32) -> Option<(u32, TriHit)> {
+        self.intersect_with(q, tmax, |_, _| true)
+    }
+
+    /// Closest hit in (0, tmax) that `accept` agrees to (alpha-tested surfaces say no where
+    /// they are transparent); `tmax` shrinks to the hit.
+    #[inline]
+    pub fn intersect_with<A: FnMut(u32, &TriHit) -> bool>(
+        &self,
+        q: &RayQuery,
+        tmax: &mut f32,
+        mut accept: A,
+    ) -> Option<(u32, TriHit)> {
+        let positions = self.tri_positions();
+        let mut best = None;
+        bvh::traverse(self.nodes(), q, tmax, |slot, tmax| {
+            if let Some(p) = positions.get(slot as usize) {
+                let (v0, v1, v2) = tri_points(p);
+                if let Some(hit) = triangle::intersect(q, v0, v1, v2, *tmax)
+                    && accept(slot, &hit)
+                {
+                    *tmax = hit.t;
+                    best = Some((slot, hit));
+                }
+            }
+            Visit::Continue
+        });
+        best
+    }
+
+    /// Every triangle hit in (0, tmax), in no particular order, until `f` says stop.
+    #[inline]
+    pub fn for_each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
+        let positions = self.tri_positions();
+        let mut t = tmax;
+        bvh::traverse(self.nodes(), q, &mut t, |slot, tmax| {
+            if let Some(p) = positions.get(slot as usize) {
+                let (v0, v1, v2) = tri_points(p);
+                if let Some(hit) = triangle::intersect(q, v0, v1, v2, *tmax) {
+                    return f(slot, hit);
+                }
+            }
+            Visit::Continue
+        });
+    }
+
+    /// Surface attributes of triangle `tri` at barycentrics `hit`.
+    pub fn surface(&self, tri: u32, hit: &TriHit) -> SurfaceAttributes {
+        let h = self.header();
+        let l = &self.layout;
+        let p = &self.tri_positions()[tri as usize];
+        let (v0, v1, v2) = tri_points(p);
+        let idx = self.tri_vertices()[tri as usize].map(|i| i as usize);
+        let b = [hit.b0, hit.b1, hit.b2];
+
+        // Point and its rounding error bound (pbrt-v4: gamma(7) of the barycentric sum).
+        let p = v0 * b[0] + v1 * b[1] + v2 * b[2];
+        let p_abs = (v0 * b[0]).abs() + (v1 * b[1]).abs() + (v2 * b[2]).abs();
+        let p_error = p_abs * crate::math::gamma(7);
+
+        let ng = (v1 - v0).cross(v2 - v0);
+        let area2 = ng.length();
+        let ng = if area2 > 0.0 { ng / area2 } else { Vec3A::Z };
+
+        let interp3 = |data: &[[f32; 3]]| -> Vec3 {
+            Vec3::from(data[idx[0]]) * b[0]
+                + Vec3::from(data[idx[1]]) * b[1]
+                + Vec3::from(data[idx[2]]) * b[2]
+        };
+        let interp4 = |data: &[[f32; 4]]| -> Vec4 {
+            Vec4::from(data[idx[0]]) * b[0]
+                + Vec4::from(data[idx[1]]) * b[1]
+                + Vec4::from(data[idx[2]]) * b[2]
+        };
+
+        let ns = if h.flags & FLAG_NORMALS != 0 {
+            let n = interp3(self.section(l.normals, l.uv0));
+            let len = n.length();
+            if len > 1e-12 && len.is_finite() {
+                n / len
+            } else {
+                Vec3::from(ng)
+            }
+        } else {
+            Vec3::from(ng)
+        };
+        let uv_of = |flag: u32, start: usize, end: usize| -> Option<[Vec2; 3]> {
+            (h.flags & flag != 0).then(|| {
+                let data: &[[f32; 2]] = self.section(start, end);
+                [
+                    Vec2::from(data[idx[0]]),
+                    Vec2::from(data[idx[1]]),
+                    Vec2::from(data[idx[2]]),
+                ]
+            })
+        };
+        let uv0 = uv_of(FLAG_UV0, l.uv0, l.uv1);
+        let uv1 = uv_of(FLAG_UV1, l.uv1, l.tangents);
+        let tangent =
+            (h.flags & FLAG_TANGENTS != 0).then(|| interp4(self.section(l.tangents, l.colors)));
+        let color = (h.flags & FLAG_COLORS != 0).then(|| interp4(self.section(l.colors, l.end)));
+
+        // dp/du and dp/dv from the first UV set, for normal mapping and texture footprints.
+        let dpdu = uv0.and_then(|uv| {
+            let duv02 = uv[0] - uv[2];
+            let duv12 = uv[1] - uv[2];
+            let dp02 = Vec3::from(v0 - v2);
+            let dp12 = Vec3::from(v1 - v2);
+            let det = duv02.x * duv12.y - duv02.y * duv12.x;
+            if det.abs() < 1e-20 {
+                return None;
+            }
+            let inv = 1.0 / det;
+            let dpdu = (dp02 * duv12.y - dp12 * duv02.y) * inv;
+            let dpdv = (dp12 * duv02.x - dp02 * duv12.x) * inv;
+            (dpdu.is_finite() && dpdv.is_finite()).then_some((dpdu, dpdv))
+        });
+
+        SurfaceAttributes {
+            p,
+            p_error,
+            ng: Vec3::from(ng),
+            ns,
+            uv0: uv0.map(|uv| uv[0] * b[0] + uv[1] * b[1] + uv[2] * b[2]),
+            uv1: uv1.map(|uv| uv[0] * b[0] + uv[1] * b[1] + uv[2] * b[2]),
+            tangent,
+            color,
+            dpdu,
+            area: area2 * 0.5,
+            material: h.material,
+            light: if h.light_base == NO_LIGHT {
+                NO_LIGHT
+            } else {
+                h.light_base + tri
+            },
+        }
+    }
+}
+
+#[inline(always)]
+pub fn tri_points(p: &[f32; 9]) -> (Vec3A, Vec3A, Vec3A) {
+    (
+        Vec3A::new(p[0], p[1], p[2]),
+        Vec3A::new(p[3], p[4], p[5]),
+        Vec3A::new(p[6], p[7], p[8]),
+    )
+}
+
+/// What shading needs to know about a hit point.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceAttributes {
+    pub p: Vec3A,
+    pub p_error: Vec3A,
+    /// Geometric normal, unit, following the triangle's winding (v0, v1, v2 counter-clockwise).
+    pub ng: Vec3,
+    /// Interpolated shading normal, unit (the geometric one when the mesh has none).
+    pub ns: Vec3,
+    pub uv0: Option<Vec2>,
+    pub uv1: Option<Vec2>,
+    pub tangent: Option<Vec4>,
+    pub color: Option<Vec4>,
+    pub dpdu: Option<(Vec3, Vec3)>,
+    pub area: f32,
+    pub material: u32,
+    pub light: u32,
+}
+
+/// A mesh primitive in world space, ready to be cut into chunks. Attribute arrays are either
+/// empty or as long as `positions`.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MeshData {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub uv0: Vec<Vec2>,
+    pub uv1: Vec<Vec2>,
+    pub tangents: Vec<Vec4>,
+    pub colors: Vec<Vec4>,
+    pub triangles: Vec<[u32; 3]>,
+    pub material: u32,
+}
+
+/// Cuts `mesh` into spatially coherent pieces of at most `max_tris` triangles by recursive
+/// median splits of triangle centroids along the widest axis. Deterministic.
+pub fn split_mesh(mesh: &MeshData, max_tris: usize) -> Vec<Vec<u32>> {
+    let max_tris = max_tris.max(1);
+    let centroids: Vec<Vec3> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            (mesh.positions[t[0] as usize]
+                + mesh.positions[t[1] as usize]
+                + mesh.positions[t[2] as usize])
+                / 3.0
+        })
+        .collect();
+    let mut out = Vec::new();
+    let mut work = vec![(0..mesh.triangles.len() as u32).collect::<Vec<u32>>()];
+    while let Some(mut tris) = work.pop() {
+        if tris.len() <= max_tris {
+            out.push(tris);
+            continue;
+        }
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for &t in &tris {
+            lo = lo.min(centroids[t as usize]);
+            hi = hi.max(centroids[t as usize]);
+        }
+        let ext = hi - lo;
+        let axis = if ext.x >= ext.y && ext.x >= ext.z {
+            0
+        } else if ext.y >= ext.z {
+            1
+        } else {
+            2
+        };
+        let mid = tris.len() / 2;
+        tris.select_nth_unstable_by(mid, |&a, &b| {
+            centroids[a as usize][axis]
+                .total_cmp(&centroids[b as usize][axis])
+                .then(a.cmp(&b))
+        });
+        let right = tris.split_off(mid);
+        // Push right first so pieces come out in left-to-right order.
+        work.push(right);
+        work.push(tris);
+    }
+    out
+}
+
+/// Builds the chunk for the triangles `tris` of `mesh`, or `None` when their BVH comes out
+/// deeper than traversal allows (only degenerate clusters of coincident triangles do that;
+/// the caller then splits the piece and tries again).
+pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -> Option<Chunk> {
+    // Triangle boxes, BVH, then triangles in leaf order.
+    let boxes: Vec<Aabb> = tris
+        .iter()
+        .map(|&t| {
+            let [a, b, c] =
+                mesh.triangles[t as usize].map(|i| Vec3A::from(mesh.positions[i as usize]));
+            Aabb::new(a.min(b).min(c), a.max(b).max(c))
+        })
+        .collect();
+    let wide = bvh::build(&boxes);
+    if bvh::validate_nodes(&wide.nodes, wide.primitive_indices.len()).is_err() {
+        return None;
+    }
+    let ordered: Vec<u32> = wide
+        .primitive_indices
+        .iter()
+        .map(|&i| tris[i as usize])
+        .collect();
+
+    // Chunk-local vertices, first use first.
+    let mut remap = std::collections::HashMap::<u32, u32>::new();
+    let mut local_vertices = Vec::new();
+    let mut tri_vertices = Vec::with_capacity(ordered.len());
+    for &t in &ordered {
+        let idx = mesh.triangles[t as usize].map(|v| {
+            *remap.entry(v).or_insert_with(|| {
+                local_vertices.push(v);
+                (local_vertices.len() - 1) as u32
+            })
+        });
+        tri_vertices.push(idx);
+    }
+
+    let has = |len: usize| len == mesh.positions.len() && len > 0;
+    let mut flags = 0;
+    if has(mesh.normals.len()) {
+        flags |= FLAG_NORMALS;
+    }
+    if has(mesh.uv0.len()) {
+        flags |= FLAG_UV0;
+    }
+    if has(mesh.uv1.len()) {
+        flags |= FLAG_UV1;
+    }
+    if has(mesh.tangents.len()) {
+        flags |= FLAG_TANGENTS;
+    }
+    if has(mesh.colors.len()) {
+        flags |= FLAG_COLORS;
+    }
+
+    let mut bounds = Aabb::empty();
+    for b in &boxes {
+        bounds = bounds.union(b);
+    }
+    let header = ChunkHeader {
+        magic: CHUNK_MAGIC,
+        version: CHUNK_VERSION,
+        chunk_id,
+        material: mesh.material,
+        node_count: wide.nodes.len() as u32,
+        tri_count: ordered.len() as u32,
+        vertex_count: local_vertices.len() as u32,
+        flags,
+        light_base: NO_LIGHT,
+        mesh_id,
+        bounds_min: Vec3::from(bounds.min).into(),
+        bounds_max: Vec3::from(bounds.max).into(),
+    };
+
+    let mut words: Vec<u32> = Vec::new();
+    words.extend_from_slice(bytemuck::cast_slice(&[header]));
+    words.extend_from_slice(bytemuck::cast_slice(&wide.nodes));
+    for &t in &ordered {
+        let [a, b, c] = mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
+        let p = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
+        words.extend_from_slice(bytemuck::cast_slice(&p));
+    }
+    words.extend_from_slice(bytemuck::cast_slice(&tri_vertices));
+    let gather = |words: &mut Vec<u32>, f: &dyn Fn(usize) -> Vec<f32>| {
+        for &v in &local_vertices {
+            words.extend(f(v as usize).iter().map(|x| x.to_bits()));
+        }
+    };
+    if flags & FLAG_NORMALS != 0 {
+        gather(&mut words, &|v| mesh.normals[v].to_array().to_vec());
+    }
+    if flags & FLAG_UV0 != 0 {
+        gather(&mut words, &|v| mesh.uv0[v].to_array().to_vec());
+    }
+    if flags & FLAG_UV1 != 0 {
+        gather(&mut words, &|v| mesh.uv1[v].to_array().to_vec());
+    }
+    if flags & FLAG_TANGENTS != 0 {
+        gather(&mut words, &|v| mesh.tangents[v].to_array().to_vec());
+    }
+    if flags & FLAG_COLORS != 0 {
+        gather(&mut words, &|v| mesh.colors[v].to_array().to_vec());
+    }
+    let layout = Layout::of(&header)?;
+    debug_assert_eq!(layout.end, words.len());
+    Some(Chunk {
+        words: words.into_boxed_slice(),
+        layout,
+    })
+}
+
+impl Chunk {
+    /// Sets the light index of the first triangle (done once the scene's light list exists).
+    pub fn set_light_base(&mut self, base: u32) {
+        let header: &mut ChunkHeader =
+            bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(&mut self.words[..HEADER_WORDS]));
+        header.light_base = base;
+    }
+
+    pub fn bounds(&self) -> Aabb {
+        let h = self.header();
+        Aabb::new(Vec3A::from(h.bounds_min), Vec3A::from(h.bounds_max))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ray::Ray;
+
+    fn grid_mesh(n: usize) -> MeshData {
+        let mut m = MeshData::default();
+        for j in 0..=n {
+            for i in 0..=n {
+                m.positions
+                    .push(Vec3::new(i as f32, j as f32, ((i * j) % 3) as f32 * 0.1));
+                m.uv0
+                    .push(Vec2::new(i as f32 / n as f32, j as f32 / n as f32));
+            }
+        }
+        let w = (n + 1) as u32;
+        for j in 0..n as u32 {
+            for i in 0..n as u32 {
+                let a = j * w + i;
+                m.triangles.push([a, a + 1, a + w + 1]);
+                m.triangles.push([a, a + w + 1, a + w]);
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn split_covers_every_triangle_once() {
+        let m = grid_mesh(40);
+        let pieces = split_mesh(&m, 100);
+        let mut seen = vec![0; m.triangles.len()];
+        for p in &pieces {
+            assert!(p.len() <= 100);
+            for &t in p {
+                seen[t as usize] += 1;
+            }
+        }
+        assert!(seen.iter().all(|&s| s == 1));
+    }
+
+    #[test]
+    fn chunk_round_trips_through_bytes_and_hits_like_brute_force() {
+        let m = grid_mesh(20);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 7, 0).expect("chunk");
+        let again = Chunk::from_bytes(chunk.as_bytes()).expect("valid chunk");
+        assert_eq!(again, chunk);
+        for i in 0..200 {
+            let o = Vec3::new(0.37 + i as f32 * 0.09, 0.21 + (i % 13) as f32 * 1.3, 5.0);
+            let ray = Ray::infinite(o, Vec3::new(0.05, 0.02, -1.0).normalize());
+            let q = RayQuery::new(&ray);
+            let mut tmax = f32::INFINITY;
+            let got = again.intersect(&q, &mut tmax).map(|(_, h)| h.t);
+            let mut brute: Option<f32> = None;
+            for p in again.tri_positions() {
+                let (a, b, c) = tri_points(p);
+                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY) {
+                    brute = Some(brute.map_or(h.t, |t: f32| t.min(h.t)));
+                }
+            }
+            assert_eq!(got, brute, "ray {i}");
+        }
+    }
+
+    #[test]
+    fn corrupted_bytes_are_refused_not_trusted() {
+        let m = grid_mesh(5);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).expect("chunk");
+        let bytes = chunk.as_bytes().to_vec();
+        assert!(Chunk::from_bytes(&bytes[..bytes.len() - 4]).is_err());
+        assert!(Chunk::from_bytes(&bytes[..10]).is_err());
+        let mut bad = bytes.clone();
+        bad[0] ^= 0xff;
+        assert!(matches!(
+            Chunk::from_bytes(&bad),
+            Err(ChunkError::BadMagic(_))
+        ));
+        // A vertex index far out of range.
+        let mut words: Vec<u32> = chunk.words().to_vec();
+        let h = *chunk.header();
+        let vert_at = HEADER_WORDS + h.node_count as usize * NODE_WORDS + h.tri_count as usize * 9;
+        words[vert_at] = 1_000_000;
+        assert!(matches!(
+            Chunk::from_words(words.into_boxed_slice()),
+            Err(ChunkError::VertexOutOfRange { .. })
+        ));
+    }
+}

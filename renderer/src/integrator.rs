@@ -1,0 +1,316 @@
+//! Integrators: the radiance arriving along one camera ray.
+//!
+//! * `path`: unbiased path tracing with next-event estimation, multiple importance sampling
+//!   (power heuristic) between light and BSDF sampling, and Russian roulette.
+//! * `whitted`: the paper's ray tracer: direct light from every punctual light (area lights
+//!   sampled as points), hard shadows, mirror reflection and refraction with Fresnel weights,
+//!   texture mapping, to a bounded depth.
+
+use glam::{Vec3, Vec3A};
+use serde::{Deserialize, Serialize};
+
+use crate::{
+    bsdf::Bsdf,
+    chunk::NO_LIGHT,
+    light::UNIFORM_SPHERE_PDF,
+    material::{self, Material},
+    math::{offset_ray_origin, power_heuristic},
+    ray::Ray,
+    sampler::Sampler,
+    source::{DataError, SceneData},
+    trace::{AlphaKey, Tracer, shadow_ray},
+};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+pub enum IntegratorKind {
+    #[default]
+    Path,
+    Whitted,
+}
+
+impl std::str::FromStr for IntegratorKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "path" => Ok(IntegratorKind::Path),
+            "whitted" => Ok(IntegratorKind::Whitted),
+            other => Err(format!(
+                "unknown integrator {other:?} (expected path or whitted)"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for IntegratorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            IntegratorKind::Path => "path",
+            IntegratorKind::Whitted => "whitted",
+        })
+    }
+}
+
+/// Radiance along `ray` (a camera ray) for one sample.
+pub fn radiance<D: SceneData>(
+    t: &Tracer<D>,
+    kind: IntegratorKind,
+    ray: Ray,
+    sampler: &mut Sampler,
+    max_depth: u32,
+) -> Result<Vec3, DataError> {
+    match kind {
+        IntegratorKind::Path => path(t, ray, sampler, max_depth),
+        IntegratorKind::Whitted => whitted(t, ray, sampler, 0, max_depth, None),
+    }
+}
+
+/// Beer-Lambert extinction of a volume material per unit length.
+fn extinction(m: &Material) -> Vec3 {
+    if !(m.attenuation_distance.is_finite() && m.attenuation_distance > 0.0) {
+        return Vec3::ZERO;
+    }
+    let c = m.attenuation_color.clamp(Vec3::splat(1e-6), Vec3::ONE);
+    Vec3::new(-c.x.ln(), -c.y.ln(), -c.z.ln()) / m.attenuation_distance
+}
+
+fn attenuate(t: f32, ray: &Ray, medium: Option<&Material>) -> Vec3 {
+    match medium {
+        Some(m) => {
+            let sigma = extinction(m);
+            let dist = t * ray.dir.length();
+            Vec3::new(
+                (-sigma.x * dist).exp(),
+                (-sigma.y * dist).exp(),
+                (-sigma.z * dist).exp(),
+            )
+        }
+        None => Vec3::ONE,
+    }
+}
+
+/// After a transmission through a refracting volume's surface: entering it if we came from
+/// its front, leaving it otherwise.
+fn next_medium(m: &Material, material_id: u32, front: bool, current: Option<u32>) -> Option<u32> {
+    if m.thickness > 0.0 && m.transmission > 0.0 {
+        if front { Some(material_id) } else { None }
+    } else {
+        current
+    }
+}
+
+fn path<D: SceneData>(
+    t: &Tracer<D>,
+    mut ray: Ray,
+    sampler: &mut Sampler,
+    max_depth: u32,
+) -> Result<Vec3, DataError> {
+    let scene = t.scene;
+    let mut l = Vec3::ZERO;
+    let mut beta = Vec3::ONE;
+    // Where the previous bounce sampled its direction, its density and whether it was a delta.
+    let mut prev: Option<(Vec3, f32, bool)> = None;
+    let mut medium: Option<u32> = None;
+
+    for bounce in 0..max_depth {
+        sampler.start_bounce(bounce);
+        let key = AlphaKey {
+            sampler: *sampler,
+            bounce,
+        };
+        let Some(hit) = t.closest(&ray, key)? else {
+            // The ray leaves the scene: the environment, weighted against light sampling.
+            if let Some(env) = scene.environment_light {
+                let weight = match prev {
+                    None | Some((_, _, true)) => 1.0,
+                    Some((_, pdf_bsdf, false)) => {
+                        let pmf = scene.light_distribution.pmf(env as usize);
+                        power_heuristic(pdf_bsdf, pmf * UNIFORM_SPHERE_PDF)
+                    }
+                };
+                l += beta * scene.environment.radiance(Vec3::from(ray.dir).normalize()) * weight;
+            }
+            break;
+        };
+        beta *= attenuate(
+            hit.tri_hit.t,
+            &ray,
+            medium.map(|m| &scene.materials[m as usize]),
+        );
+
+        let s = hit.chunk.surface(hit.tri, &hit.tri_hit);
+        let m = &scene.materials[s.material as usize];
+        let params = material::shading_params(scene, t.data, m, &s)?;
+        let wo = -Vec3::from(ray.dir).normalize();
+        let front = wo.dot(s.ng) > 0.0;
+
+        // Emission, weighted against the light sampling that could also have found it.
+        if params.emission.max_element() > 0.0 && (front || m.double_sided) {
+            let weight = match prev {
+                None | Some((_, _, true)) => 1.0,
+                Some((p_prev, pdf_bsdf, false)) => {
+                    if s.light == NO_LIGHT || s.light as usize >= scene.lights.len() {
+                        1.0
+                    } else {
+                        let pmf = scene.light_distribution.pmf(s.light as usize);
+                        let pdf_light =
+                            pmf * scene.lights[s.light as usize].pdf_at(p_prev, Vec3::from(s.p));
+                        power_heuristic(pdf_bsdf, pdf_light)
+                    }
+                }
+            };
+            l += beta * params.emission * weight;
+        }
+
+        let bsdf = Bsdf::new(&params, s.ng, wo);
+        let ns = bsdf.shading_normal();
+        let ng = Vec3A::from(bsdf.geometric_normal());
+
+        // Next-event estimation.
+        let u_light = sampler.get_1d();
+        let u_point = sampler.get_2d();
+        if !bsdf.is_pure_delta()
+            && let Some((li, pmf)) = scene.light_distribution.sample(u_light)
+        {
+            let light = &scene.lights[li];
+            if let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), u_point)? {
+                let f = bsdf.eval(wo, ls.wi) * ls.wi.dot(ns).abs();
+                if f.max_element() > 0.0 && ls.li.max_element() > 0.0 {
+                    let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
+                    let shadow = shadow_ray(origin, ls.point, ls.wi);
+                    if !t.occluded(&shadow, key)? {
+                        if ls.delta {
+                            l += beta * f * ls.li / pmf;
+                        } else {
+                            let pdf_light = ls.pdf * pmf;
+                            let w = power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi));
+                            l += beta * f * ls.li * (w / pdf_light);
+                        }
+                    }
+                }
+            }
+        }
+
+        // Continue the path.
+        let u_lobe = sampler.get_1d();
+        let u_dir = sampler.get_2d();
+        let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else {
+            break;
+        };
+        beta *= bs.weight;
+        if !beta.is_finite() || beta.max_element() <= 0.0 {
+            break;
+        }
+        if bounce >= 3 {
+            let q = (1.0 - beta.max_element()).max(0.05);
+            if sampler.get_1d() < q {
+                break;
+            }
+            beta /= 1.0 - q;
+        }
+        if bs.transmitted {
+            medium = next_medium(m, s.material, front, medium);
+        }
+        let origin = offset_ray_origin(s.p, s.p_error, ng, bs.wi.into());
+        ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
+        t.count_secondary_ray();
+        prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
+    }
+    Ok(l)
+}
+
+/// Surfaces smoother than this are mirrors to the Whitted integrator.
+const WHITTED_MIRROR_ROUGHNESS: f32 = 0.2;
+
+fn whitted<D: SceneData>(
+    t: &Tracer<D>,
+    ray: Ray,
+    sampler: &mut Sampler,
+    depth: u32,
+    max_depth: u32,
+    medium: Option<u32>,
+) -> Result<Vec3, DataError> {
+    let scene = t.scene;
+    sampler.start_bounce(depth);
+    let key = AlphaKey {
+        sampler: *sampler,
+        bounce: depth,
+    };
+    let Some(hit) = t.closest(&ray, key)? else {
+        return Ok(scene.environment.radiance(Vec3::from(ray.dir).normalize()));
+    };
+    let atten = attenuate(
+        hit.tri_hit.t,
+        &ray,
+        medium.map(|m| &scene.materials[m as usize]),
+    );
+    let s = hit.chunk.surface(hit.tri, &hit.tri_hit);
+    let m = &scene.materials[s.material as usize];
+    let params = material::shading_params(scene, t.data, m, &s)?;
+    let wo = -Vec3::from(ray.dir).normalize();
+    let front = wo.dot(s.ng) > 0.0;
+    let mut l = Vec3::ZERO;
+    if front || m.double_sided {
+        l += params.emission;
+    }
+    let bsdf = Bsdf::new(&params, s.ng, wo);
+    let ns = bsdf.shading_normal();
+    let ng = Vec3A::from(bsdf.geometric_normal());
+    let p = Vec3::from(s.p);
+
+    // Direct light: every punctual light, plus one point on an area light chosen by power.
+    let direct = |ls: crate::light::LightSample, scale: f32| -> Result<Vec3, DataError> {
+        let f = bsdf.eval(wo, ls.wi) * ls.wi.dot(ns).abs();
+        if f.max_element() <= 0.0 || ls.li.max_element() <= 0.0 {
+            return Ok(Vec3::ZERO);
+        }
+        let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
+        if t.occluded(&shadow_ray(origin, ls.point, ls.wi), key)? {
+            return Ok(Vec3::ZERO);
+        }
+        Ok(f * ls.li * scale)
+    };
+    let u_light = sampler.get_1d();
+    let u_point = sampler.get_2d();
+    for light in scene.lights.iter().filter(|l| l.is_delta()) {
+        if let Some(ls) = light.sample(scene, t.data, p, (0.5, 0.5))? {
+            l += direct(ls, 1.0)?;
+        }
+    }
+    if let Some((li, pmf)) = scene.light_distribution.sample(u_light) {
+        let light = &scene.lights[li];
+        if !light.is_delta()
+            && let Some(ls) = light.sample(scene, t.data, p, u_point)?
+            && ls.pdf > 0.0
+        {
+            l += direct(ls, 1.0 / (ls.pdf * pmf))?;
+        }
+    }
+
+    // Mirror reflection and refraction.
+    if depth + 1 < max_depth {
+        for (wi, weight, transmitted) in
+            bsdf.specular_paths(wo, params.roughness < WHITTED_MIRROR_ROUGHNESS)
+        {
+            if weight.max_element() <= 1e-4 {
+                continue;
+            }
+            let origin = offset_ray_origin(s.p, s.p_error, ng, wi.into());
+            t.count_secondary_ray();
+            let next = if transmitted {
+                next_medium(m, s.material, front, medium)
+            } else {
+                medium
+            };
+            l += weight
+                * whitted(
+                    t,
+                    Ray::new(origin, wi.into(), f32::INFINITY),
+                    sampler,
+                    depth + 1,
+                    max_depth,
+                    next,
+                )?;
+        }
+    }
+    Ok(l * atten)
+}

@@ -1,0 +1,30 @@
+//! magg's renderer core: everything needed to turn a scene into pixels, and nothing that
+//! touches a file or a socket.
+//!
+//! The shape data lives in [`chunk::Chunk`]s (flat byte blocks with their own BVH) that the
+//! renderer reads through the [`source::SceneData`] trait, so the same code renders from
+//! memory in one process and from a demand-filled cache on a render node.
+
+pub mod bsdf;
+pub mod bvh;
+pub mod camera;
+pub mod chunk;
+pub mod demo;
+pub mod integrator;
+pub mod light;
+pub mod material;
+pub mod math;
+pub mod ray;
+pub mod render;
+pub mod sampler;
+pub mod scene;
+pub mod source;
+pub mod texture;
+pub mod trace;
+pub mod triangle;
+
+pub use camera::{Camera, Projection};
+pub use integrator::IntegratorKind;
+pub use render::{Image, Rect, RenderSettings};
+pub use scene::{PrepareOptions, Scene, SceneDesc, prepare};
+pub use source::{DataError, MemoryData, SceneData};

@@ -1,0 +1,160 @@
+//! Small numeric helpers shared by geometry and shading: floating-point error
+//! bounds (for robust ray spawning), orthonormal frames and colour weights.
+
+use glam::{Vec3, Vec3A};
+
+pub const PI: f32 = std::f32::consts::PI;
+pub const INV_PI: f32 = std::f32::consts::FRAC_1_PI;
+
+/// Bound on the relative error of `n` successive f32 operations (Higham's gamma_n).
+#[inline]
+pub const fn gamma(n: i32) -> f32 {
+    let eps = f32::EPSILON * 0.5;
+    (n as f32 * eps) / (1.0 - n as f32 * eps)
+}
+
+/// The next representable f32 above `v` (towards +infinity).
+#[inline]
+pub fn next_float_up(v: f32) -> f32 {
+    if v.is_infinite() && v > 0.0 {
+        return v;
+    }
+    let v = if v == -0.0 { 0.0 } else { v };
+    let bits = v.to_bits();
+    let bits = if v >= 0.0 { bits + 1 } else { bits - 1 };
+    f32::from_bits(bits)
+}
+
+/// The next representable f32 below `v` (towards -infinity).
+#[inline]
+pub fn next_float_down(v: f32) -> f32 {
+    if v.is_infinite() && v < 0.0 {
+        return v;
+    }
+    let v = if v == 0.0 { -0.0 } else { v };
+    let bits = v.to_bits();
+    let bits = if v > 0.0 { bits - 1 } else { bits + 1 };
+    f32::from_bits(bits)
+}
+
+/// Rec. 709 luminance of a linear RGB colour.
+#[inline]
+pub fn luminance(c: Vec3) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// An orthonormal frame around a unit normal (Duff et al. 2017, branchless).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub t: Vec3,
+    pub b: Vec3,
+    pub n: Vec3,
+}
+
+impl Frame {
+    pub fn from_normal(n: Vec3) -> Frame {
+        let sign = 1.0f32.copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        let t = Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x);
+        let bt = Vec3::new(b, sign + n.y * n.y * a, -n.y);
+        Frame { t, b: bt, n }
+    }
+
+    /// A frame whose first axis follows `tangent` (made orthogonal to `n`), falling back
+    /// to an arbitrary frame when the tangent is degenerate.
+    pub fn from_normal_tangent(n: Vec3, tangent: Vec3, bitangent_sign: f32) -> Frame {
+        let t = tangent - n * n.dot(tangent);
+        let len2 = t.length_squared();
+        if !(len2 > 1e-20) || !len2.is_finite() {
+            return Frame::from_normal(n);
+        }
+        let t = t / len2.sqrt();
+        let b = n.cross(t) * if bitangent_sign < 0.0 { -1.0 } else { 1.0 };
+        Frame { t, b, n }
+    }
+
+    #[inline]
+    pub fn to_local(&self, v: Vec3) -> Vec3 {
+        Vec3::new(v.dot(self.t), v.dot(self.b), v.dot(self.n))
+    }
+
+    #[inline]
+    pub fn to_world(&self, v: Vec3) -> Vec3 {
+        self.t * v.x + self.b * v.y + self.n * v.z
+    }
+}
+
+/// Offsets a point off a surface along its geometric normal by enough to clear the
+/// floating-point error of the point itself, on the side `w` points to. This replaces any
+/// scene-scale epsilon: the offset scales with the coordinates, so it works at any size and
+/// any distance from the origin (pbrt-v4's scheme).
+#[inline]
+pub fn offset_ray_origin(p: Vec3A, p_error: Vec3A, n: Vec3A, w: Vec3A) -> Vec3A {
+    let d = n.abs().dot(p_error);
+    let mut offset = n * d;
+    if w.dot(n) < 0.0 {
+        offset = -offset;
+    }
+    let mut po = p + offset;
+    // Round away from p so the offset point is never pulled back into the error box.
+    let mut arr = po.to_array();
+    let off = offset.to_array();
+    for i in 0..3 {
+        if off[i] > 0.0 {
+            arr[i] = next_float_up(arr[i]);
+        } else if off[i] < 0.0 {
+            arr[i] = next_float_down(arr[i]);
+        }
+    }
+    po = Vec3A::from_array(arr);
+    po
+}
+
+#[inline]
+pub fn safe_sqrt(x: f32) -> f32 {
+    x.max(0.0).sqrt()
+}
+
+/// Power heuristic with beta = 2 for multiple importance sampling.
+#[inline]
+pub fn power_heuristic(f_pdf: f32, g_pdf: f32) -> f32 {
+    let f = f_pdf * f_pdf;
+    let g = g_pdf * g_pdf;
+    if f.is_infinite() {
+        return 1.0;
+    }
+    if f + g == 0.0 { 0.0 } else { f / (f + g) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn next_float_moves_one_ulp() {
+        for v in [0.0f32, -0.0, 1.0, -1.0, 1e-30, -1e30, 3.5] {
+            assert!(next_float_up(v) > v);
+            assert!(next_float_down(v) < v);
+        }
+    }
+
+    #[test]
+    fn frame_is_orthonormal() {
+        for n in [
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::X,
+            Vec3::new(0.3, -0.5, 0.8).normalize(),
+        ] {
+            let f = Frame::from_normal(n);
+            assert!((f.t.length() - 1.0).abs() < 1e-5);
+            assert!((f.b.length() - 1.0).abs() < 1e-5);
+            assert!(f.t.dot(f.n).abs() < 1e-5);
+            assert!(f.b.dot(f.n).abs() < 1e-5);
+            assert!(f.t.dot(f.b).abs() < 1e-5);
+            let v = Vec3::new(0.2, 0.7, -0.1);
+            assert!((f.to_world(f.to_local(v)) - v).length() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,519 @@
+//! Scenes in two forms.
+//!
+//! [`SceneDesc`] is what a loader produces: world-space meshes, materials, images, lights and
+//! cameras. [`prepare`] turns it into the form rendering uses, split the way the cluster
+//! moves it: a [`Scene`] header (cameras, materials, lights, texture descriptions, the
+//! top-level tree over chunk bounds; small, sent to every render node) and [`MemoryData`]
+//! (the chunks and texture tiles, which render nodes fetch on demand).
+
+use glam::{Vec2, Vec3};
+use obvhs::{aabb::Aabb, cwbvh::node::CwBvhNode};
+use serde::{Deserialize, Serialize};
+
+use crate::{
+    bvh,
+    camera::Camera,
+    chunk::{self, Chunk, MeshData},
+    light::{Environment, Light, LightDistribution},
+    material::Material,
+    source::MemoryData,
+    texture::{self, Filter, TextureInfo, Wrap},
+};
+
+/// An image a material uses, decoded to RGBA8.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TextureDesc {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<u8>,
+    pub wrap_s: Wrap,
+    pub wrap_t: Wrap,
+    pub filter: Filter,
+}
+
+/// A scene as loaders build it, in world space.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SceneDesc {
+    pub meshes: Vec<MeshData>,
+    pub materials: Vec<Material>,
+    pub textures: Vec<TextureDesc>,
+    /// Punctual lights; emissive triangles become lights in [`prepare`].
+    pub lights: Vec<Light>,
+    pub cameras: Vec<Camera>,
+    /// The world around the scene. `None`: a sky ([`Environment::sky`]) when the scene has
+    /// no light of its own, neither punctual lights nor untextured emitters (most published
+    /// glTF files have none, and would otherwise render black), else darkness.
+    #[serde(default)]
+    pub environment: Option<Environment>,
+}
+
+impl SceneDesc {
+    pub fn triangle_count(&self) -> usize {
+        self.meshes.iter().map(|m| m.triangles.len()).sum()
+    }
+
+    /// Checks a description received from elsewhere before [`prepare`] trusts it: every
+    /// index in range, every attribute array the right length, every number finite.
+    pub fn validate(&self) -> Result<(), SceneError> {
+        let bad = |m: String| Err(SceneError::Invalid(m));
+        for (i, m) in self.meshes.iter().enumerate() {
+            let n = m.positions.len();
+            if m.material as usize >= self.materials.len() {
+                return bad(format!(
+                    "mesh {i} uses material {} of {}",
+                    m.material,
+                    self.materials.len()
+                ));
+            }
+            for (name, len) in [
+                ("normals", m.normals.len()),
+                ("uv0", m.uv0.len()),
+                ("uv1", m.uv1.len()),
+                ("tangents", m.tangents.len()),
+                ("colors", m.colors.len()),
+            ] {
+                if len != 0 && len != n {
+                    return bad(format!(
+                        "mesh {i}: {name} has {len} entries for {n} positions"
+                    ));
+                }
+            }
+            if m.triangles.iter().flatten().any(|&v| v as usize >= n) {
+                return bad(format!("mesh {i}: a triangle index is out of range"));
+            }
+            if !m.positions.iter().all(|p| p.is_finite()) {
+                return bad(format!("mesh {i}: non-finite position"));
+            }
+        }
+        for (i, t) in self.textures.iter().enumerate() {
+            if t.width == 0
+                || t.height == 0
+                || t.rgba.len() as u64 != t.width as u64 * t.height as u64 * 4
+            {
+                return bad(format!(
+                    "texture {i}: {}x{} with {} bytes",
+                    t.width,
+                    t.height,
+                    t.rgba.len()
+                ));
+            }
+        }
+        for (i, m) in self.materials.iter().enumerate() {
+            for t in m.textures() {
+                if t.texture as usize >= self.textures.len() {
+                    return bad(format!(
+                        "material {i} uses texture {} of {}",
+                        t.texture,
+                        self.textures.len()
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct PrepareOptions {
+    /// Most triangles in one chunk.
+    pub chunk_triangles: usize,
+}
+
+impl Default for PrepareOptions {
+    fn default() -> Self {
+        PrepareOptions {
+            chunk_triangles: 4096,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkInfo {
+    pub bounds_min: Vec3,
+    pub bounds_max: Vec3,
+    pub tri_count: u32,
+    pub byte_len: u32,
+}
+
+/// The top-level tree over chunk bounds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Tlas {
+    #[serde(with = "pod_vec")]
+    pub nodes: Vec<CwBvhNode>,
+    /// Leaf slot to chunk id.
+    pub slots: Vec<u32>,
+}
+
+/// Everything about a scene except its shape and texture data.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Scene {
+    pub cameras: Vec<Camera>,
+    pub materials: Vec<Material>,
+    pub textures: Vec<TextureInfo>,
+    pub lights: Vec<Light>,
+    pub light_distribution: LightDistribution,
+    /// Radiance of rays that leave the scene (black: none).
+    pub environment: Environment,
+    /// Index of the environment in `lights`, when it is not black.
+    pub environment_light: Option<u32>,
+    pub chunks: Vec<ChunkInfo>,
+    pub tlas: Tlas,
+    pub bounds_min: Vec3,
+    pub bounds_max: Vec3,
+    /// Total bytes of all chunks, the base of shape-cache percentages.
+    pub shape_bytes: u64,
+    pub tile_count: u32,
+}
+
+impl Scene {
+    pub fn radius(&self) -> f32 {
+        ((self.bounds_max - self.bounds_min).length() * 0.5).max(0.0)
+    }
+
+    pub fn has_transmission(&self) -> bool {
+        self.materials.iter().any(|m| m.transmission > 0.0)
+    }
+
+    pub fn triangle_count(&self) -> u64 {
+        self.chunks.iter().map(|c| c.tri_count as u64).sum()
+    }
+
+    /// Checks every index and number of a header received from elsewhere, so that
+    /// rendering with it cannot index out of bounds.
+    pub fn validate(&self) -> Result<(), SceneError> {
+        let bad = |what: String| Err(SceneError::Invalid(what));
+        let finite3 = |v: Vec3| v.is_finite();
+        for (i, m) in self.materials.iter().enumerate() {
+            for t in m.textures() {
+                if t.texture as usize >= self.textures.len() {
+                    return bad(format!(
+                        "material {i} uses texture {} of {}",
+                        t.texture,
+                        self.textures.len()
+                    ));
+                }
+            }
+            if !m.base_color.is_finite() || !finite3(m.emissive) || !m.ior.is_finite() {
+                return bad(format!("material {i} has non-finite factors"));
+            }
+        }
+        let mut tiles = 0u64;
+        for (i, t) in self.textures.iter().enumerate() {
+            if t.width == 0 || t.height == 0 || t.width > 1 << 16 || t.height > 1 << 16 {
+                return bad(format!("texture {i} is {}x{}", t.width, t.height));
+            }
+            if t.first_tile as u64 != tiles {
+                return bad(format!(
+                    "texture {i} starts at tile {}, expected {tiles}",
+                    t.first_tile
+                ));
+            }
+            tiles += t.tile_count() as u64;
+        }
+        if tiles != self.tile_count as u64 {
+            return bad(format!(
+                "textures hold {tiles} tiles, header says {}",
+                self.tile_count
+            ));
+        }
+        for (i, l) in self.lights.iter().enumerate() {
+            if let Light::Triangle { material, .. } = l
+                && *material as usize >= self.materials.len()
+            {
+                return bad(format!("light {i} uses material {material}"));
+            }
+        }
+        if let Some(e) = self.environment_light
+            && !matches!(self.lights.get(e as usize), Some(Light::Environment(_)))
+        {
+            return bad("environment light index is wrong".into());
+        }
+        if !self.environment.is_finite() {
+            return bad("non-finite environment".into());
+        }
+        if self.light_distribution.cdf.len() != self.lights.len() {
+            return bad("light distribution does not match the lights".into());
+        }
+        if self
+            .light_distribution
+            .cdf
+            .windows(2)
+            .any(|w| !(w[0] <= w[1]))
+        {
+            return bad("light distribution is not increasing".into());
+        }
+        if self
+            .tlas
+            .slots
+            .iter()
+            .any(|&s| s as usize >= self.chunks.len())
+        {
+            return bad("top-level tree points at a chunk that does not exist".into());
+        }
+        bvh::validate_nodes(&self.tlas.nodes, self.tlas.slots.len())
+            .map_err(|e| SceneError::Invalid(format!("top-level tree: {e}")))?;
+        Ok(())
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SceneError {
+    #[error("invalid scene header: {0}")]
+    Invalid(String),
+}
+
+/// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
+/// light list and cuts textures into tiles. Deterministic.
+pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
+    let mut chunks: Vec<Chunk> = Vec::new();
+    for (mesh_id, mesh) in desc.meshes.iter().enumerate() {
+        let mut work = chunk::split_mesh(mesh, opts.chunk_triangles);
+        work.reverse();
+        while let Some(piece) = work.pop() {
+            if piece.is_empty() {
+                continue;
+            }
+            match chunk::build_chunk(mesh, &piece, chunks.len() as u32, mesh_id as u32) {
+                Some(c) => chunks.push(c),
+                None => {
+                    // Too deep a tree (coincident triangles): halve and retry.
+                    let halves = chunk::split_mesh(
+                        &MeshData {
+                            positions: mesh.positions.clone(),
+                            triangles: piece.iter().map(|&t| mesh.triangles[t as usize]).collect(),
+                            ..Default::default()
+                        },
+                        piece.len().div_ceil(2),
+                    );
+                    for h in halves.into_iter().rev() {
+                        work.push(h.iter().map(|&i| piece[i as usize]).collect());
+                    }
+                }
+            }
+        }
+    }
+
+    // Bounds of everything.
+    let mut bounds = Aabb::empty();
+    for c in &chunks {
+        bounds = bounds.union(&c.bounds());
+    }
+    let (bmin, bmax) = if chunks.is_empty() {
+        (Vec3::ZERO, Vec3::ZERO)
+    } else {
+        (Vec3::from(bounds.min), Vec3::from(bounds.max))
+    };
+
+    // Textures into tiles.
+    let mut tiles = Vec::new();
+    let mut textures = Vec::new();
+    for t in &desc.textures {
+        let (avg_lin, avg_srgb) = texture::averages(&t.rgba);
+        textures.push(TextureInfo {
+            name: t.name.clone(),
+            width: t.width,
+            height: t.height,
+            wrap_s: t.wrap_s,
+            wrap_t: t.wrap_t,
+            filter: t.filter,
+            first_tile: tiles.len() as u32,
+            average_linear: avg_lin,
+            average_srgb: avg_srgb,
+        });
+        tiles.extend(texture::make_tiles(t.width, t.height, &t.rgba));
+    }
+
+    // Emissive triangles become lights, in chunk order.
+    let mut lights = desc.lights.clone();
+    for c in chunks.iter_mut() {
+        let material_id = c.header().material;
+        let Some(m) = desc.materials.get(material_id as usize) else {
+            continue;
+        };
+        if !m.is_emissive() {
+            continue;
+        }
+        let base = lights.len() as u32;
+        let tex_coord = m.emissive_tex.map_or(0, |t| t.tex_coord);
+        let hit = |b: [f32; 3]| crate::triangle::TriHit {
+            t: 1.0,
+            b0: b[0],
+            b1: b[1],
+            b2: b[2],
+        };
+        for tri in 0..c.tri_count() {
+            let (v0, v1, v2) = chunk::tri_points(&c.tri_positions()[tri as usize]);
+            let uv_at = |b: [f32; 3]| {
+                let s = c.surface(tri, &hit(b));
+                let uv = if tex_coord == 1 { s.uv1 } else { s.uv0 };
+                uv.unwrap_or(Vec2::ZERO)
+            };
+            lights.push(Light::Triangle {
+                p: [Vec3::from(v0), Vec3::from(v1), Vec3::from(v2)],
+                uv: [
+                    uv_at([1.0, 0.0, 0.0]),
+                    uv_at([0.0, 1.0, 0.0]),
+                    uv_at([0.0, 0.0, 1.0]),
+                ],
+                material: material_id,
+                two_sided: m.double_sided,
+            });
+        }
+        c.set_light_base(base);
+    }
+
+    // A scene "has lights" when it has punctual lights or untextured emitters (area lights).
+    // Textured emission (glowing details, screens) alone does not light a scene, so such a
+    // scene gets the white environment too.
+    let has_lights = !desc.lights.is_empty()
+        || chunks.iter().any(|c| {
+            desc.materials
+                .get(c.header().material as usize)
+                .is_some_and(|m| m.is_emissive() && m.emissive_tex.is_none())
+        });
+    let environment = desc.environment.unwrap_or(if has_lights {
+        Environment::default()
+    } else {
+        Environment::sky()
+    });
+    let environment = if environment.is_finite() {
+        Environment {
+            zenith: environment.zenith.max(Vec3::ZERO),
+            nadir: environment.nadir.max(Vec3::ZERO),
+        }
+    } else {
+        Environment::default()
+    };
+    let environment_light = (!environment.is_black()).then(|| {
+        lights.push(Light::Environment(environment));
+        (lights.len() - 1) as u32
+    });
+
+    let chunk_infos: Vec<ChunkInfo> = chunks
+        .iter()
+        .map(|c| {
+            let h = c.header();
+            ChunkInfo {
+                bounds_min: Vec3::from(h.bounds_min),
+                bounds_max: Vec3::from(h.bounds_max),
+                tri_count: h.tri_count,
+                byte_len: c.byte_len() as u32,
+            }
+        })
+        .collect();
+    let boxes: Vec<Aabb> = chunks.iter().map(|c| c.bounds()).collect();
+    let top = bvh::build(&boxes);
+
+    let data = MemoryData { chunks, tiles };
+    let mut scene = Scene {
+        cameras: desc.cameras,
+        materials: desc.materials,
+        textures,
+        lights,
+        light_distribution: LightDistribution::default(),
+        environment,
+        environment_light,
+        chunks: chunk_infos,
+        tlas: Tlas {
+            nodes: top.nodes,
+            slots: top.primitive_indices,
+        },
+        bounds_min: bmin,
+        bounds_max: bmax,
+        shape_bytes: data.shape_bytes(),
+        tile_count: data.tiles.len() as u32,
+    };
+    let radius = scene.radius();
+    let weights: Vec<f64> = scene
+        .lights
+        .iter()
+        .map(|l| l.power(&scene, radius))
+        .collect();
+    scene.light_distribution = LightDistribution::new(&weights);
+    (scene, data)
+}
+
+impl Scene {
+    /// The camera called `name` ("auto": one framing the whole scene), else the first,
+    /// else one framing the whole scene.
+    pub fn camera(&self, name: Option<&str>, aspect: f32) -> Result<Camera, SceneError> {
+        match name {
+            Some("auto") if !self.cameras.iter().any(|c| c.name == "auto") => {
+                Ok(Camera::framing(self.bounds_min, self.bounds_max, aspect))
+            }
+            Some(n) => self
+                .cameras
+                .iter()
+                .find(|c| c.name == n)
+                .cloned()
+                .ok_or_else(|| {
+                    let names: Vec<&str> = self.cameras.iter().map(|c| c.name.as_str()).collect();
+                    SceneError::Invalid(format!(
+                        "no camera named {n:?}; the scene has {}",
+                        if names.is_empty() {
+                            "none".to_string()
+                        } else {
+                            format!("{names:?}")
+                        }
+                    ))
+                }),
+            None => Ok(self
+                .cameras
+                .first()
+                .cloned()
+                .unwrap_or_else(|| Camera::framing(self.bounds_min, self.bounds_max, aspect))),
+        }
+    }
+}
+
+/// Serde for `Vec<T: Pod>` as one byte string (CWBVH nodes have no serde of their own).
+mod pod_vec {
+    use bytemuck::Pod;
+    use serde::{Deserialize, Deserializer, Serializer, de::Error};
+
+    pub fn serialize<S: Serializer, T: Pod>(v: &[T], s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(bytemuck::cast_slice(v))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>, T: Pod>(d: D) -> Result<Vec<T>, D::Error> {
+        let bytes: Vec<u8> = serde::de::Deserialize::deserialize(d).map(|b: ByteBuf| b.0)?;
+        if !bytes.len().is_multiple_of(size_of::<T>()) {
+            return Err(D::Error::custom(
+                "byte length is not a whole number of elements",
+            ));
+        }
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+
+    struct ByteBuf(Vec<u8>);
+
+    impl<'de> Deserialize<'de> for ByteBuf {
+        fn deserialize<D: Deserializer<'de>>(d: D) -> Result<ByteBuf, D::Error> {
+            struct V;
+            impl<'de> serde::de::Visitor<'de> for V {
+                type Value = ByteBuf;
+                fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                    f.write_str("bytes")
+                }
+                fn visit_bytes<E: Error>(self, v: &[u8]) -> Result<ByteBuf, E> {
+                    Ok(ByteBuf(v.to_vec()))
+                }
+                fn visit_byte_buf<E: Error>(self, v: Vec<u8>) -> Result<ByteBuf, E> {
+                    Ok(ByteBuf(v))
+                }
+                fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                    self,
+                    mut seq: A,
+                ) -> Result<ByteBuf, A::Error> {
+                    let mut v = Vec::new();
+                    while let Some(b) = seq.next_element::<u8>()? {
+                        v.push(b);
+                    }
+                    Ok(ByteBuf(v))
+                }
+            }
+            d.deserialize_bytes(V)
+        }
+    }
+}

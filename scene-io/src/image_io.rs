@@ -1,0 +1,349 @@
+//! Image files, chosen by extension:
+//!
+//! * `.png`: 8-bit sRGB. Linear values are clamped to [0, 1], encoded with the sRGB transfer
+//!   function and rounded; no tone mapping, so what the renderer computed is what a viewer
+//!   shows, up to the clamp.
+//! * `.exr` (OpenEXR, 32-bit float RGB) and `.pfm` (portable float map, little-endian, rows
+//!   bottom-up as the format says): linear values, untouched.
+//!
+//! Files are written whole or not at all: into a temporary file beside the target, then
+//! renamed over it, so a reader never sees half an image and a failure leaves nothing behind.
+
+use std::{
+    fs,
+    io::Write,
+    path::{Path, PathBuf},
+};
+
+use renderer::Image;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("{path}: unknown image format (use .png, .exr or .pfm)")]
+    UnknownFormat { path: PathBuf },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Encode { path: PathBuf, message: String },
+    #[error("{path}: not a valid image: {message}")]
+    Decode { path: PathBuf, message: String },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Png,
+    Exr,
+    Pfm,
+}
+
+impl Format {
+    pub fn of(path: &Path) -> Option<Format> {
+        let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+        match ext.as_str() {
+            "png" => Some(Format::Png),
+            "exr" => Some(Format::Exr),
+            "pfm" => Some(Format::Pfm),
+            _ => None,
+        }
+    }
+}
+
+/// sRGB transfer function (IEC 61966-2-1) of a linear value in [0, 1].
+pub fn linear_to_srgb(c: f32) -> f32 {
+    if c <= 0.003_130_8 {
+        c * 12.92
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+pub fn to_srgb8(c: f32) -> u8 {
+    let c = if c.is_finite() {
+        c.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (linear_to_srgb(c) * 255.0 + 0.5).floor().clamp(0.0, 255.0) as u8
+}
+
+/// Encodes an image into the bytes of a file of the given format.
+pub fn encode(image: &Image, format: Format) -> Result<Vec<u8>, String> {
+    match format {
+        Format::Png => {
+            let mut rgb = Vec::with_capacity(image.pixels.len() * 3);
+            for p in &image.pixels {
+                rgb.extend(p.iter().map(|&c| to_srgb8(c)));
+            }
+            let mut out = Vec::new();
+            let enc = image::codecs::png::PngEncoder::new(&mut out);
+            image::ImageEncoder::write_image(
+                enc,
+                &rgb,
+                image.width,
+                image.height,
+                image::ExtendedColorType::Rgb8,
+            )
+            .map_err(|e| e.to_string())?;
+            Ok(out)
+        }
+        Format::Pfm => {
+            let mut out = format!("PF\n{} {}\n-1.0\n", image.width, image.height).into_bytes();
+            for row in (0..image.height as usize).rev() {
+                for p in &image.pixels[row * image.width as usize..(row + 1) * image.width as usize]
+                {
+                    for c in p {
+                        out.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            }
+            Ok(out)
+        }
+        Format::Exr => {
+            use exr::prelude::*;
+            let w = image.width as usize;
+            let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+                let p = image.pixels[y * w + x];
+                (p[0], p[1], p[2])
+            });
+            // Lossless ZIP in increasing line order, written by one thread: the same pixels
+            // always give the same file bytes (parallel writers may order blocks freely).
+            let img = exr::image::Image::from_encoded_channels(
+                (w, image.height as usize),
+                Encoding::SMALL_LOSSLESS,
+                channels,
+            );
+            let mut cursor = std::io::Cursor::new(Vec::new());
+            img.write()
+                .non_parallel()
+                .to_buffered(&mut cursor)
+                .map_err(|e| e.to_string())?;
+            Ok(cursor.into_inner())
+        }
+    }
+}
+
+/// Writes `image` to `path` atomically, in the format its extension names.
+pub fn write_image(path: &Path, image: &Image) -> Result<(), ImageError> {
+    let format = Format::of(path).ok_or_else(|| ImageError::UnknownFormat { path: path.into() })?;
+    let bytes = encode(image, format).map_err(|message| ImageError::Encode {
+        path: path.into(),
+        message,
+    })?;
+    write_atomic(path, &bytes)
+}
+
+/// Writes bytes to `path` via a temporary file in the same folder and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
+    let io = |source| ImageError::Io {
+        path: path.into(),
+        source,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let result = (|| {
+        let mut f = fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = fs::remove_file(&tmp);
+        return Err(io(e));
+    }
+    Ok(())
+}
+
+/// Reads an image written by magg or another renderer (PNG is sRGB-decoded to linear).
+pub fn read_image(path: &Path) -> Result<Image, ImageError> {
+    let format = Format::of(path).ok_or_else(|| ImageError::UnknownFormat { path: path.into() })?;
+    let decode = |message: String| ImageError::Decode {
+        path: path.into(),
+        message,
+    };
+    match format {
+        Format::Pfm => {
+            let bytes = fs::read(path).map_err(|source| ImageError::Io {
+                path: path.into(),
+                source,
+            })?;
+            decode_pfm(&bytes).map_err(decode)
+        }
+        Format::Png => {
+            let img = image::open(path)
+                .map_err(|e| decode(e.to_string()))?
+                .to_rgb8();
+            let (w, h) = img.dimensions();
+            let pixels = img
+                .pixels()
+                .map(|p| {
+                    p.0.map(|c| renderer::texture::srgb_to_linear(c as f32 / 255.0))
+                })
+                .collect();
+            Ok(Image {
+                width: w,
+                height: h,
+                pixels,
+            })
+        }
+        Format::Exr => {
+            use exr::prelude::*;
+            let img = read_first_rgba_layer_from_file(
+                path,
+                |res: Vec2<usize>, _| (res.0, vec![[0f32; 3]; res.0 * res.1]),
+                |(w, px): &mut (usize, Vec<[f32; 3]>),
+                 pos: Vec2<usize>,
+                 (r, g, b, _a): (f32, f32, f32, f32)| {
+                    px[pos.1 * *w + pos.0] = [r, g, b];
+                },
+            )
+            .map_err(|e| decode(e.to_string()))?;
+            let size = img.layer_data.size;
+            Ok(renderer::Image {
+                width: size.0 as u32,
+                height: size.1 as u32,
+                pixels: img.layer_data.channel_data.pixels.1,
+            })
+        }
+    }
+}
+
+/// Parses a PFM file (colour "PF" or greyscale "Pf", either byte order).
+pub fn decode_pfm(bytes: &[u8]) -> Result<Image, String> {
+    // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
+    let mut tokens = Vec::new();
+    let mut i = 0;
+    while tokens.len() < 4 {
+        while i < bytes.len() && bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        let start = i;
+        while i < bytes.len() && !bytes[i].is_ascii_whitespace() {
+            i += 1;
+        }
+        if start == i {
+            return Err("truncated header".into());
+        }
+        tokens.push(
+            std::str::from_utf8(&bytes[start..i])
+                .map_err(|_| "header is not text")?
+                .to_string(),
+        );
+        if start > 64 {
+            return Err("header too long".into());
+        }
+    }
+    i += 1;
+    let channels = match tokens[0].as_str() {
+        "PF" => 3,
+        "Pf" => 1,
+        m => return Err(format!("bad magic {m:?}")),
+    };
+    let w: u32 = tokens[1].parse().map_err(|_| "bad width")?;
+    let h: u32 = tokens[2].parse().map_err(|_| "bad height")?;
+    let scale: f32 = tokens[3].parse().map_err(|_| "bad scale")?;
+    let little = scale < 0.0;
+    let n = (w as usize)
+        .checked_mul(h as usize)
+        .and_then(|n| n.checked_mul(channels * 4))
+        .ok_or("image too large")?;
+    let data = bytes
+        .get(i..i + n)
+        .ok_or_else(|| format!("expected {n} bytes of pixels after the header"))?;
+    let mut pixels = vec![[0f32; 3]; w as usize * h as usize];
+    for (k, c) in data.chunks_exact(4).enumerate() {
+        let arr = [c[0], c[1], c[2], c[3]];
+        let v = if little {
+            f32::from_le_bytes(arr)
+        } else {
+            f32::from_be_bytes(arr)
+        };
+        let px = k / channels;
+        let (x, y_from_bottom) = (px % w as usize, px / w as usize);
+        let row = h as usize - 1 - y_from_bottom;
+        let p = &mut pixels[row * w as usize + x];
+        if channels == 3 {
+            p[k % 3] = v;
+        } else {
+            *p = [v; 3];
+        }
+    }
+    Ok(Image {
+        width: w,
+        height: h,
+        pixels,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn gradient() -> Image {
+        let mut img = Image::new(5, 3);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            *p = [i as f32 * 0.1, 1.0 - i as f32 * 0.05, 2.5];
+        }
+        img
+    }
+
+    #[test]
+    fn same_pixels_same_file_bytes() {
+        let img = gradient();
+        for f in [Format::Png, Format::Exr, Format::Pfm] {
+            assert_eq!(encode(&img, f).unwrap(), encode(&img, f).unwrap(), "{f:?}");
+        }
+    }
+
+    #[test]
+    fn pfm_and_exr_round_trip_exactly() {
+        let dir = std::env::temp_dir().join(format!("magg-img-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let img = gradient();
+        for name in ["a.pfm", "a.exr"] {
+            let p = dir.join(name);
+            write_image(&p, &img).unwrap();
+            assert_eq!(read_image(&p).unwrap(), img, "{name}");
+        }
+        let _ = fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn png_is_srgb_clamped() {
+        assert_eq!(to_srgb8(0.0), 0);
+        assert_eq!(to_srgb8(1.0), 255);
+        assert_eq!(to_srgb8(7.0), 255);
+        assert_eq!(to_srgb8(f32::NAN), 0);
+        assert_eq!(to_srgb8(0.2159), 128);
+        assert_eq!(to_srgb8(0.2140), 127);
+    }
+
+    #[test]
+    fn unwritable_target_leaves_nothing() {
+        let p = Path::new("/nonexistent-dir-magg/x.png");
+        assert!(matches!(
+            write_image(p, &gradient()),
+            Err(ImageError::Io { .. })
+        ));
+        assert!(matches!(
+            write_image(Path::new("x.bmp"), &gradient()),
+            Err(ImageError::UnknownFormat { .. })
+        ));
+    }
+
+    #[test]
+    fn truncated_pfm_is_an_error() {
+        assert!(decode_pfm(b"PF\n2 2\n-1.0\n\0\0").is_err());
+        assert!(decode_pfm(b"P6\n2 2\n").is_err());
+        assert!(decode_pfm(b"PF\n99999999 99999999\n-1\n").is_err());
+    }
+}

@@ -1,0 +1,670 @@
+//! `magg-host`: renders scenes (in this process, or on a cluster) and runs the benchmarks.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use renderer::{IntegratorKind, PrepareOptions, RenderSettings};
+
+#[derive(Parser)]
+#[command(
+    name = "magg-host",
+    version,
+    about = "magg: a distributed ray tracer (the host role)"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Log level filter (error, warn, info, debug, trace), or RUST_LOG syntax.
+    #[arg(long, global = true, env = "MAGG_LOG", default_value = "info")]
+    log: String,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a glTF scene (or the built-in demo scene) to an image.
+    Render(RenderArgs),
+    /// Measure the renderer core: BVH build, rays per second, samples per second.
+    Bench(BenchArgs),
+    /// Rerun the paper's experiments on real processes.
+    #[command(subcommand)]
+    Experiment(ExperimentCmd),
+    /// Render every scene of a folder small, on one contact sheet with their names.
+    Gallery(GalleryArgs),
+    /// Compare an image with a reference: relative MSE and channel means.
+    Compare { image: PathBuf, reference: PathBuf },
+}
+
+#[derive(Subcommand)]
+enum ExperimentCmd {
+    /// Figures 1.5 and 1.6: transfer times by serial link and DMA, and the one-packet formula.
+    Links(LinksArgs),
+    /// The cluster's cost: the same image in one process and on a cluster (no delay model).
+    Overhead(RunArgs),
+    /// Bytes fetched, hit rate and time for several shape-cache sizes (paper link model).
+    Cache(CacheArgs),
+}
+
+/// Render arguments passed through to every run, e.g. `-- SCENE --spp 16`.
+#[derive(Args)]
+struct RunArgs {
+    /// Folder for the images, stats and tables.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Cluster flags for the cluster run (default: --spawn magg).
+    #[arg(long, allow_hyphen_values = true, default_value = "--spawn magg")]
+    cluster: String,
+    /// Scene and render flags, as for `magg-host render`.
+    #[arg(last = true)]
+    render: Vec<String>,
+}
+
+#[derive(Args)]
+struct CacheArgs {
+    #[command(flatten)]
+    run: RunArgs,
+    /// Cache sizes in percent.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![5.0, 10.0, 20.0, 40.0, 100.0])]
+    caches: Vec<f64>,
+}
+
+/// Where the cluster comes from: spawned here, or nodes joining from elsewhere.
+#[derive(Args, Clone)]
+struct ClusterArgs {
+    /// Topology to spawn as local processes: magg, tiny, grid:CARDSxROWSxCOLS or a TOML file.
+    #[arg(long, default_value = "magg")]
+    spawn: String,
+    /// Instead of spawning, listen here for nodes started by hand (with --topology).
+    #[arg(long)]
+    listen: Option<String>,
+    /// The topology the joining nodes fill (with --listen).
+    #[arg(long)]
+    topology: Option<String>,
+    #[command(flatten)]
+    secret: magg::SecretArgs,
+    #[arg(long, env = "MAGG_CLUSTER_ID", default_value = fabric::cluster::DEFAULT_CLUSTER_ID)]
+    cluster_id: String,
+    /// Seconds to wait for the cluster to form.
+    #[arg(long, default_value_t = 120)]
+    join_timeout: u64,
+    /// Log level of spawned nodes.
+    #[arg(long, default_value = "warn")]
+    node_log: String,
+}
+
+impl ClusterArgs {
+    fn config(&self) -> Result<host::cluster::ClusterConfig> {
+        let (mode, spec) = match &self.listen {
+            Some(addr) => (
+                host::cluster::ClusterMode::Listen(addr.clone()),
+                self.topology.clone().unwrap_or_else(|| "magg".into()),
+            ),
+            None => (host::cluster::ClusterMode::Spawn, self.spawn.clone()),
+        };
+        let topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
+        let secret = match self.secret.resolve()? {
+            Some(s) => s,
+            None => {
+                let s = protocol::Secret::generate();
+                if matches!(mode, host::cluster::ClusterMode::Listen(_)) {
+                    let path = std::path::PathBuf::from("magg-secret");
+                    write_secret_file(&path, &s)?;
+                    eprintln!(
+                        "generated a cluster secret in {} (readable only by you): give nodes --secret-file {}",
+                        path.display(),
+                        path.display()
+                    );
+                }
+                s
+            }
+        };
+        Ok(host::cluster::ClusterConfig {
+            mode,
+            topology,
+            secret,
+            cluster_id: self.cluster_id.clone(),
+            join_timeout: std::time::Duration::from_secs(self.join_timeout),
+            node_log: self.node_log.clone(),
+        })
+    }
+}
+
+fn write_secret_file(path: &std::path::Path, secret: &protocol::Secret) -> Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    f.write_all(secret.expose().as_bytes())?;
+    Ok(())
+}
+
+#[derive(Args)]
+struct LinksArgs {
+    #[command(flatten)]
+    cluster: ClusterArgs,
+    /// Data sizes in bytes, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![640u32, 2560, 10240, 40960])]
+    sizes: Vec<u32>,
+    /// Transfers per node per size.
+    #[arg(long, default_value_t = 5)]
+    count: u32,
+    /// Packets per distance for the one-packet formula.
+    #[arg(long, default_value_t = 30)]
+    probes: u32,
+    /// Multiplies every modelled delay.
+    #[arg(long, default_value_t = 1.0)]
+    time_scale: f64,
+    /// Folder for the CSV files and the plot.
+    #[arg(long, default_value = "out/links")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct GalleryArgs {
+    /// Folder searched (recursively) for .gltf and .glb files.
+    dir: PathBuf,
+    #[arg(short, long, default_value = "gallery.png")]
+    output: PathBuf,
+    /// Side of each picture in pixels.
+    #[arg(long, default_value_t = 160)]
+    size: u32,
+    #[arg(long, default_value_t = 16)]
+    spp: u32,
+    #[arg(long, default_value = "path")]
+    integrator: IntegratorKind,
+    #[arg(long, default_value_t = 7)]
+    columns: u32,
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// A glTF file to use as the big mesh (default: a procedural mesh).
+    #[arg(long)]
+    mesh: Option<PathBuf>,
+    /// Triangles in the procedural mesh.
+    #[arg(long, default_value_t = 1_100_000)]
+    triangles: usize,
+    /// The Cornell box scene, for samples per second.
+    #[arg(long, default_value = "../shared/scenes/cornell/cornell.gltf")]
+    cornell: PathBuf,
+    /// A textured scene, rendered with and without its textures.
+    #[arg(
+        long,
+        default_value = "../shared/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
+    )]
+    textured: PathBuf,
+    /// Rays per measurement.
+    #[arg(long, default_value_t = 1_000_000)]
+    rays: usize,
+    #[arg(long)]
+    threads: Option<usize>,
+    #[arg(long, default_value_t = 4096)]
+    chunk_triangles: usize,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// A .gltf or .glb file; the built-in demo scene when absent.
+    scene: Option<PathBuf>,
+    /// Output image: .png (sRGB, 8-bit), .exr or .pfm (linear float).
+    #[arg(short, long, default_value = "magg.png")]
+    output: PathBuf,
+    /// Render in this one process on all cores (instead of on a cluster).
+    #[arg(long)]
+    in_process: bool,
+    #[command(flatten)]
+    cluster: ClusterArgs,
+    /// How render nodes get shape data: demand (fetched into a bounded cache) or batch.
+    #[arg(long, default_value = "demand", value_parser = parse_transfer_mode)]
+    transfer: protocol::TransferMode,
+    /// Cache budget of each render node, in percent of the scene's shape and texture bytes.
+    #[arg(long, default_value_t = 100.0)]
+    cache: f64,
+    /// How demand fetches travel: dma (the direct connection) or serial (through the mesh).
+    #[arg(long, default_value = "dma", value_parser = parse_transfer)]
+    demand_via: protocol::Transfer,
+    /// Number of subscreens the image is cut into (default: 8 per render node).
+    #[arg(long)]
+    subscreens: Option<u32>,
+    /// Adaptive redivision: idle nodes get the unbegun half of a busy node's subscreen.
+    #[arg(long)]
+    adaptive: bool,
+    /// Delay model of the links: none, or paper (the transputer's measured timings).
+    #[arg(long, default_value = "none")]
+    link_model: fabric::model::LinkModelKind,
+    /// Multiplies every modelled delay.
+    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
+    time_scale: f64,
+    /// Rendering threads per render node.
+    #[arg(long, default_value_t = 1)]
+    render_threads: u32,
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    /// Image height; by default from the camera's aspect ratio, else 480.
+    #[arg(long)]
+    height: Option<u32>,
+    /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga.
+    #[arg(long)]
+    preset: Option<String>,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    spp: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// path (unbiased path tracing) or whitted (the paper's ray tracer).
+    #[arg(long, default_value = "path")]
+    integrator: IntegratorKind,
+    /// Longest path, in bounces.
+    #[arg(long, default_value_t = 64)]
+    max_depth: u32,
+    /// Adaptive sampling: stop a pixel once its relative standard error is below this (0: off).
+    #[arg(long, default_value_t = 0.0)]
+    noise_threshold: f32,
+    /// The scene camera to use, by name (default: the first, or an automatic one).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Rendering threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Write render statistics as JSON.
+    #[arg(long)]
+    stats: Option<PathBuf>,
+    /// Most triangles in one chunk (the unit of shape data moved and cached).
+    #[arg(long, default_value_t = 4096)]
+    chunk_triangles: usize,
+    /// Radiance of the world around the scene, the same from every direction: one number
+    /// (grey) or R,G,B. By default a sky (1 above, 0.25 below) when the scene has no lights,
+    /// else black.
+    #[arg(long, value_parser = parse_rgb)]
+    environment: Option<glam::Vec3>,
+    /// No progress bar or progress lines.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_rgb(s: &str) -> Result<glam::Vec3, String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("{s:?} is not a number or R,G,B"))?;
+    let c = match v[..] {
+        [g] => glam::Vec3::splat(g),
+        [r, g, b] => glam::Vec3::new(r, g, b),
+        _ => return Err(format!("{s:?}: give one number or three (R,G,B)")),
+    };
+    if !c.is_finite() || c.min_element() < 0.0 {
+        return Err(format!("{s:?}: radiance must be finite and not negative"));
+    }
+    Ok(c)
+}
+
+fn parse_transfer_mode(s: &str) -> Result<protocol::TransferMode, String> {
+    match s {
+        "demand" => Ok(protocol::TransferMode::Demand),
+        "batch" => Ok(protocol::TransferMode::Batch),
+        o => Err(format!("unknown transfer {o:?} (demand or batch)")),
+    }
+}
+
+fn parse_transfer(s: &str) -> Result<protocol::Transfer, String> {
+    match s {
+        "dma" => Ok(protocol::Transfer::Dma),
+        "serial" => Ok(protocol::Transfer::Serial),
+        o => Err(format!("unknown demand transfer {o:?} (dma or serial)")),
+    }
+}
+
+fn render(args: RenderArgs) -> Result<()> {
+    let (mut width, mut height) = (args.width, args.height);
+    if let Some(p) = &args.preset {
+        let (w, h) = match p.as_str() {
+            "hdtv" => (1920, 1035),
+            "1080p" => (1920, 1080),
+            "720p" => (1280, 720),
+            "vga" => (640, 480),
+            other => anyhow::bail!("unknown preset {other:?} (hdtv, 1080p, 720p, vga)"),
+        };
+        width = w;
+        height = Some(h);
+    }
+    let settings = RenderSettings {
+        width,
+        height: height.unwrap_or(480),
+        spp: args.spp,
+        seed: args.seed,
+        integrator: args.integrator,
+        max_depth: args.max_depth,
+        noise_threshold: args.noise_threshold,
+        min_spp: 16,
+    };
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let config = host::RenderConfig {
+        scene: match &args.scene {
+            Some(p) => host::SceneSource::File(p.clone()),
+            None => host::SceneSource::Demo,
+        },
+        output: args.output.clone(),
+        settings,
+        height_given: height.is_some(),
+        camera: args.camera.clone(),
+        threads,
+        stats: args.stats.clone(),
+        environment: args.environment.map(renderer::light::Environment::uniform),
+        prepare: PrepareOptions {
+            chunk_triangles: args.chunk_triangles.max(1),
+        },
+        progress: !args.quiet,
+    };
+    if !args.in_process {
+        if !(args.cache > 0.0 && args.cache <= 100.0) {
+            anyhow::bail!(
+                "--cache must be a percentage above 0 and at most 100, not {}",
+                args.cache
+            );
+        }
+        if !(args.time_scale.is_finite() && args.time_scale > 0.0) {
+            anyhow::bail!(
+                "--time-scale must be a positive number, not {}",
+                args.time_scale
+            );
+        }
+        let cluster = args
+            .cluster
+            .config()?
+            .with_model(Some(args.link_model), Some(args.time_scale));
+        let cfg = host::distributed::ClusterRenderConfig {
+            render: config,
+            cluster,
+            transfer: args.transfer,
+            demand_via: args.demand_via,
+            cache_percent: args.cache,
+            subscreens: args.subscreens,
+            adaptive: args.adaptive,
+            render_threads: args.render_threads.max(1),
+        };
+        let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let rt = runtime()?;
+        let c = cancel.clone();
+        rt.spawn(async move {
+            let signal = magg::stop_signal().await;
+            tracing::warn!("{signal}: stopping the cluster");
+            c.store(true, std::sync::atomic::Ordering::SeqCst);
+        });
+        let stats = match rt.block_on(host::distributed::render_on_cluster(&cfg, &cancel)) {
+            Err(host::distributed::ClusterRenderError::Interrupted) => {
+                eprintln!("interrupted; the cluster was stopped and no image was written");
+                std::process::exit(130);
+            }
+            r => r?,
+        };
+        print_cluster_summary(&stats);
+        return Ok(());
+    }
+    let stats = host::render_in_process(&config)?;
+    eprintln!(
+        "wrote {} ({}x{}, {} spp) in {:.2} s: {:.2} M rays/s, {:.0} samples/s",
+        stats.output,
+        stats.width,
+        stats.height,
+        stats.spp,
+        stats.seconds.total,
+        stats.rays_per_second / 1e6,
+        stats.samples_per_second
+    );
+    Ok(())
+}
+
+fn bench(args: BenchArgs) -> Result<()> {
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let config = host::bench::BenchConfig {
+        mesh: args.mesh,
+        triangles: args.triangles,
+        cornell: Some(args.cornell),
+        textured: Some(args.textured),
+        rays: args.rays,
+        threads,
+        chunk_triangles: args.chunk_triangles,
+    };
+    let r = host::bench::run(&config).map_err(anyhow::Error::msg)?;
+    println!(
+        "mesh: {} ({} triangles, {} chunks)",
+        r.mesh, r.triangles, r.chunks
+    );
+    println!("| figure | value |");
+    println!("|---|---|");
+    println!(
+        "| BVH build (chunks + both levels) | {:.2} s per million triangles |",
+        r.build_seconds_per_million
+    );
+    println!(
+        "| primary rays, 1 core | {:.2} M rays/s ({:.0}% hit) |",
+        r.primary_rays_per_second / 1e6,
+        r.primary_hit_fraction * 100.0
+    );
+    println!(
+        "| incoherent rays, 1 core | {:.2} M rays/s ({:.0}% hit) |",
+        r.incoherent_rays_per_second / 1e6,
+        r.incoherent_hit_fraction * 100.0
+    );
+    match r.cornell_samples_per_second {
+        Some(s) => println!(
+            "| Cornell box path tracing, {} threads | {:.0} samples/s |",
+            r.cornell_threads, s
+        ),
+        None => println!("| Cornell box path tracing | skipped: scene file not found |"),
+    }
+    if let (Some(t), Some(u)) = (
+        r.textured_samples_per_second,
+        r.untextured_samples_per_second,
+    ) {
+        println!(
+            "| textured scene, {} threads: with textures / with constant factors | {:.0} / {:.0} samples/s ({:.2}x) |",
+            r.cornell_threads,
+            t,
+            u,
+            u / t
+        );
+    }
+    if let Some(p) = args.json {
+        let json = serde_json::to_vec_pretty(&r)?;
+        std::fs::write(&p, json).with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}
+
+fn print_cluster_summary(s: &host::distributed::ClusterStats) {
+    let r = &s.render;
+    eprintln!(
+        "wrote {} ({}x{}, {} spp) on {} processes ({}) in {:.2} s (render {:.2} s): {:.0} samples/s",
+        r.output,
+        r.width,
+        r.height,
+        r.spp,
+        s.processes,
+        s.topology,
+        r.seconds.total,
+        r.seconds.render,
+        r.samples_per_second
+    );
+    eprintln!(
+        "{} subscreens ({} split off), {} transfer, cache {}% ({} bytes a node), link model {} x{}",
+        s.subscreens,
+        s.subscreens_split,
+        s.transfer,
+        s.cache_percent,
+        s.cache_bytes,
+        s.link_model,
+        s.time_scale
+    );
+    let render: Vec<&protocol::NodeStats> = s
+        .nodes
+        .iter()
+        .filter(|n| n.role == Some(protocol::Role::Render))
+        .collect();
+    let forks: Vec<&protocol::NodeStats> = s
+        .nodes
+        .iter()
+        .filter(|n| n.role == Some(protocol::Role::Fork))
+        .collect();
+    let range = |v: Vec<f64>| -> String {
+        if v.is_empty() {
+            return "-".into();
+        }
+        let min = v.iter().cloned().fold(f64::INFINITY, f64::min);
+        let max = v.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        format!("{min:.1}/{mean:.1}/{max:.1}")
+    };
+    eprintln!(
+        "{:<13} {:>5} {:>16} {:>16} {:>14} {:>14} {:>22}",
+        "", "nodes", "subscreens", "busy s", "waiting s", "idle s", "cache hit/miss/evict"
+    );
+    eprintln!(
+        "{:<13} {:>5} {:>16} {:>16} {:>14} {:>14} {:>22}",
+        "render nodes",
+        render.len(),
+        range(render.iter().map(|n| n.subscreens as f64).collect()),
+        range(render.iter().map(|n| n.busy_s).collect()),
+        range(render.iter().map(|n| n.waiting_s).collect()),
+        range(render.iter().map(|n| n.idle_s).collect()),
+        format!(
+            "{}/{}/{}",
+            s.totals.cache_hits, s.totals.cache_misses, s.totals.cache_evictions
+        )
+    );
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    eprintln!(
+        "{:<13} {:>5} served {:.1} MiB to render nodes, read {:.1} MiB over the G-bus",
+        "fork nodes",
+        forks.len(),
+        mib(forks.iter().map(|n| n.bytes_served).sum()),
+        mib(forks.iter().map(|n| n.bytes_gbus).sum())
+    );
+    eprintln!(
+        "render nodes fetched {:.1} MiB (DMA {:.1}, serial {:.1}); {} frames forwarded; peak memory {:.1} MiB in all (per-node figures: --stats)",
+        mib(s.totals.bytes_fetched_dma + s.totals.bytes_fetched_serial),
+        mib(s.totals.bytes_fetched_dma),
+        mib(s.totals.bytes_fetched_serial),
+        s.totals.frames_forwarded,
+        mib(s.cluster_peak_rss_bytes)
+    );
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+fn experiment(cmd: ExperimentCmd) -> Result<()> {
+    match cmd {
+        ExperimentCmd::Overhead(a) => {
+            let dir = a.out.unwrap_or_else(|| host::runs::out_dir("overhead"));
+            let cluster: Vec<String> = a.cluster.split_whitespace().map(String::from).collect();
+            let r = host::runs::overhead(&a.render, &cluster, &dir)?;
+            println!("{}", host::runs::overhead_table(&r));
+            std::fs::write(dir.join("overhead.json"), serde_json::to_vec_pretty(&r)?)?;
+            Ok(())
+        }
+        ExperimentCmd::Cache(a) => {
+            let dir = a.run.out.unwrap_or_else(|| host::runs::out_dir("cache"));
+            let cluster: Vec<String> = a.run.cluster.split_whitespace().map(String::from).collect();
+            let rows = host::runs::cache_sweep(&[a.run.render, cluster].concat(), &a.caches, &dir)?;
+            println!("{}", host::runs::cache_table(&rows));
+            println!("wrote {}/cache.csv", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::Links(args) => {
+            let cluster = args
+                .cluster
+                .config()?
+                .with_model(None, Some(args.time_scale));
+            let config = host::experiment::LinksConfig {
+                cluster,
+                sizes: args.sizes,
+                count: args.count,
+                probes: args.probes,
+                out_dir: args.out.clone(),
+            };
+            let report = runtime()?
+                .block_on(host::experiment::links(&config, &|m| tracing::info!("{m}")))?;
+            println!("{}", host::experiment::tables(&report));
+            println!(
+                "wrote {0}/one_way.csv, {0}/transfers.csv, {0}/links.json, {0}/fig1.5-one-node.png and {0}/fig1.6-many-nodes.png",
+                args.out.display()
+            );
+            Ok(())
+        }
+    }
+}
+
+fn main() {
+    let cli = magg::parse_args::<Cli>();
+    magg::init_logging(&cli.log);
+    let result = match cli.command {
+        Command::Render(args) => render(args),
+        Command::Bench(args) => bench(args),
+        Command::Gallery(a) => (|| {
+            host::inprocess::check_output(&a.output)?;
+            let c = host::gallery::GalleryConfig {
+                dir: a.dir,
+                output: a.output.clone(),
+                size: a.size.clamp(16, 1024),
+                spp: a.spp.max(1),
+                integrator: a.integrator,
+                columns: a.columns,
+                threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            };
+            let entries = host::gallery::gallery(&c, &|f| tracing::info!("{f}"))
+                .map_err(anyhow::Error::msg)?;
+            let failed = entries.iter().filter(|e| e.pixels.is_none()).count();
+            let bad: u64 = entries.iter().map(|e| e.bad_samples).sum();
+            eprintln!(
+                "wrote {} ({} scenes, {failed} not rendered, {bad} NaN or infinite samples)",
+                a.output.display(),
+                entries.len()
+            );
+            for e in entries.iter().filter(|e| e.pixels.is_none()) {
+                eprintln!("  {}: {}", e.name, e.note);
+            }
+            Ok(())
+        })(),
+        Command::Experiment(cmd) => experiment(cmd),
+        Command::Compare { image, reference } => (|| {
+            let a = scene_io::read_image(&image)
+                .with_context(|| format!("reading {}", image.display()))?;
+            let b = scene_io::read_image(&reference)
+                .with_context(|| format!("reading {}", reference.display()))?;
+            let c = host::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
+            println!("relMSE {:.6e}", c.rel_mse);
+            for (i, ch) in ["R", "G", "B"].iter().enumerate() {
+                println!(
+                    "mean {ch}: {:.5} vs {:.5} ({:+.3}%)",
+                    c.mean_a[i],
+                    c.mean_b[i],
+                    c.mean_rel_diff[i] * 100.0
+                );
+            }
+            Ok(())
+        })(),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {}", magg::report(&e));
+        std::process::exit(1);
+    }
+}

@@ -1,0 +1,108 @@
+//! The command line, as a user meets it: the first command renders the demo scene, and
+//! every mistake is one clear line with a non-zero exit and no file left behind.
+
+mod common;
+use common::*;
+
+use std::path::Path;
+
+#[test]
+fn render_with_no_scene_writes_the_demo_image() {
+    let dir = scratch("demo");
+    let out = dir.join("magg.png");
+    let o = run(host()
+        .args([
+            "render", "--width", "64", "--height", "48", "--spp", "2", "-o",
+        ])
+        .arg(&out));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = image::open(&out).expect("a PNG was written");
+    assert_eq!((img.width(), img.height()), (64, 48));
+}
+
+#[test]
+fn stats_file_reports_the_work() {
+    let dir = scratch("stats");
+    let out = dir.join("a.exr");
+    let stats = dir.join("s.json");
+    let o = run(host()
+        .args([
+            "render", "--width", "32", "--height", "32", "--spp", "3", "-o",
+        ])
+        .arg(&out)
+        .arg("--stats")
+        .arg(&stats));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    assert_eq!(v["samples"], 32 * 32 * 3);
+    assert!(v["rays"]["total"].as_u64().unwrap() >= 32 * 32 * 3);
+    assert!(v["seconds"]["render"].as_f64().unwrap() > 0.0);
+    assert!(v["samples_per_second"].as_f64().unwrap() > 0.0);
+}
+
+fn expect_error(args: &[&str], out: &std::path::Path, needle: &str) {
+    let o = run(host().args(args).arg("-o").arg(out));
+    assert!(!o.status.success(), "{args:?} should fail");
+    let err = stderr(&o);
+    assert!(
+        err.contains(needle),
+        "{args:?}: {err:?} should mention {needle:?}"
+    );
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "{args:?}: one line expected, got {err:?}"
+    );
+    assert!(!out.exists(), "{args:?} left {} behind", out.display());
+}
+
+#[test]
+fn mistakes_are_one_clear_line() {
+    let dir = scratch("errors");
+    let png = dir.join("x.png");
+    expect_error(
+        &["render", "/no/such/scene.gltf"],
+        &png,
+        "/no/such/scene.gltf",
+    );
+    expect_error(&["render", "--width", "0"], &png, "width");
+    expect_error(&["render", "--spp", "0"], &png, "spp");
+    expect_error(&["render"], &dir.join("x.bmp"), "unknown image format");
+    expect_error(
+        &["render"],
+        &dir.join("no-such-dir/x.png"),
+        "does not exist",
+    );
+    expect_error(
+        &["render"],
+        Path::new("/etc/hostname/x.png"),
+        "does not exist",
+    );
+    expect_error(&["render", "--cache", "0"], &png, "--cache");
+    expect_error(&["render", "--cache", "500"], &png, "--cache");
+    expect_error(&["render", "--time-scale", "-1"], &png, "--time-scale");
+    expect_error(&["render", "--spawn", "grid:0x0x0"], &png, "grid");
+    expect_error(
+        &["render", "--spawn", "no-such-topology"],
+        &png,
+        "no-such-topology",
+    );
+    expect_error(&["render", "--environment", "red"], &png, "red");
+    // A file that is not glTF at all.
+    let junk = dir.join("junk.gltf");
+    std::fs::write(&junk, b"this is not json").unwrap();
+    expect_error(&["render", junk.to_str().unwrap()], &png, "junk.gltf");
+}
+
+#[test]
+fn a_required_unknown_extension_is_refused_by_name() {
+    let dir = scratch("iridescence");
+    let scene =
+        shared().join("scenes/khronos/IridescenceSuzanne/glTF-Binary/IridescenceSuzanne.glb");
+    expect_error(
+        &["render", scene.to_str().unwrap()],
+        &dir.join("x.png"),
+        "KHR_materials_iridescence",
+    );
+}

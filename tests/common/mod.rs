@@ -1,0 +1,38 @@
+//! Helpers shared by the cross-process tests.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// `../shared` beside the repository: real scenes and references written by others.
+pub fn shared() -> PathBuf {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
+    assert!(
+        p.join("scenes").is_dir(),
+        "{} is missing: the tests need ../shared beside the repository",
+        p.display()
+    );
+    p
+}
+
+pub fn host() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_magg-host"));
+    c.env("MAGG_LOG", "warn");
+    c
+}
+
+/// A fresh empty folder for one test's files.
+pub fn scratch(name: &str) -> PathBuf {
+    let p = std::env::temp_dir().join(format!("magg-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&p);
+    std::fs::create_dir_all(&p).unwrap();
+    p
+}
+
+pub fn run(cmd: &mut Command) -> Output {
+    cmd.output().expect("run binary")
+}
+
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}

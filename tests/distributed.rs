@@ -1,0 +1,287 @@
+//! Rendering on real clusters of processes gives the same bytes as one process, whatever the
+//! topology, transfer mode, cache size, subscreen count or redivision; and no process
+//! outlives the render.
+
+mod common;
+use common::*;
+
+use std::path::{Path, PathBuf};
+
+fn render(args: &[&str], out: &Path, stats: Option<&Path>) -> std::process::Output {
+    let mut cmd = host();
+    cmd.arg("render")
+        .args(args)
+        .arg("--quiet")
+        .arg("-o")
+        .arg(out);
+    if let Some(s) = stats {
+        cmd.arg("--stats").arg(s);
+    }
+    run(&mut cmd)
+}
+
+fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+fn exited(pid: u64) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Err(_) => true,
+        Ok(s) => s.contains(") Z "),
+    }
+}
+
+fn helmet() -> PathBuf {
+    shared().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb")
+}
+
+#[test]
+fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
+    let dir = scratch("magg-demand");
+    let scene = helmet();
+    let scene = scene.to_str().unwrap();
+    let size = ["--width", "200", "--height", "150", "--spp", "4"];
+    let reference = dir.join("ref.exr");
+    let o = render(
+        &[&[scene, "--in-process"][..], &size].concat(),
+        &reference,
+        None,
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    let out = dir.join("cluster.exr");
+    let stats = dir.join("stats.json");
+    let o = render(
+        &[
+            &[
+                scene,
+                "--spawn",
+                "magg",
+                "--transfer",
+                "demand",
+                "--cache",
+                "5",
+            ][..],
+            &size,
+        ]
+        .concat(),
+        &out,
+        Some(&stats),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_bytes(&out, &reference);
+
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    assert_eq!(v["processes"], 86);
+    let nodes = v["nodes"].as_array().unwrap();
+    let renderers: Vec<&serde_json::Value> =
+        nodes.iter().filter(|n| n["role"] == "Render").collect();
+    assert_eq!(renderers.len(), 80);
+    for n in &renderers {
+        assert!(
+            n["subscreens"].as_u64().unwrap() >= 1,
+            "render node {} rendered nothing",
+            n["node"]
+        );
+    }
+    let t = &v["totals"];
+    assert!(t["cache_misses"].as_u64().unwrap() > 0);
+    assert!(
+        t["cache_evictions"].as_u64().unwrap() > 0,
+        "a 5% cache must evict"
+    );
+    let fetched =
+        t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap();
+    let data_bytes = v["cache_bytes"].as_f64().unwrap() / 0.05;
+    assert!(
+        (fetched as f64) < 80.0 * data_bytes * 0.25,
+        "fetched {fetched} bytes; batch would move {} ",
+        80.0 * data_bytes
+    );
+    for m in v["members"].as_array().unwrap() {
+        let pid = m["pid"].as_u64().unwrap();
+        assert!(
+            exited(pid),
+            "process {pid} ({}) outlived the render",
+            m["role"]
+        );
+    }
+}
+
+#[test]
+fn tiny_cluster_matches_in_every_mode() {
+    let dir = scratch("tiny-modes");
+    let size = [
+        "--width", "96", "--height", "64", "--spp", "3", "--seed", "5",
+    ];
+    let reference = dir.join("ref.pfm");
+    let o = render(&[&["--in-process"][..], &size].concat(), &reference, None);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let modes: Vec<Vec<&str>> = vec![
+        vec!["--transfer", "batch", "--subscreens", "1"],
+        vec!["--transfer", "batch", "--subscreens", "7"],
+        vec!["--transfer", "batch", "--subscreens", "500"],
+        vec![
+            "--transfer",
+            "demand",
+            "--cache",
+            "40",
+            "--chunk-triangles",
+            "256",
+            "--subscreens",
+            "3",
+            "--adaptive",
+        ],
+        vec![
+            "--transfer",
+            "demand",
+            "--cache",
+            "30",
+            "--chunk-triangles",
+            "512",
+            "--subscreens",
+            "40",
+            "--adaptive",
+            "--render-threads",
+            "2",
+        ],
+        vec![
+            "--transfer",
+            "demand",
+            "--cache",
+            "100",
+            "--demand-via",
+            "serial",
+            "--link-model",
+            "paper",
+            "--time-scale",
+            "0.01",
+        ],
+    ];
+    for (i, mode) in modes.iter().enumerate() {
+        let out = dir.join(format!("m{i}.pfm"));
+        let o = render(
+            &[&["--spawn", "tiny"][..], mode, &size].concat(),
+            &out,
+            None,
+        );
+        assert!(o.status.success(), "{mode:?}: {}", stderr(&o));
+        same_bytes(&out, &reference);
+    }
+}
+
+#[test]
+fn adaptive_redivision_splits_subscreens() {
+    let dir = scratch("adaptive");
+    let stats = dir.join("s.json");
+    let out = dir.join("a.pfm");
+    // Two subscreens for four nodes: the idle ones must be given halves.
+    let o = render(
+        &[
+            "--spawn",
+            "tiny",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--spp",
+            "8",
+            "--subscreens",
+            "2",
+            "--adaptive",
+        ],
+        &out,
+        Some(&stats),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    assert!(
+        v["subscreens_split"].as_u64().unwrap() >= 2,
+        "{}",
+        v["subscreens_split"]
+    );
+    let busy = v["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|n| n["subscreens"].as_u64().unwrap_or(0) > 0)
+        .count();
+    assert!(busy >= 3, "only {busy} render nodes got work");
+}
+
+#[test]
+fn a_cache_smaller_than_a_chunk_is_a_clear_error() {
+    let dir = scratch("tiny-cache");
+    let out = dir.join("x.png");
+    let o = render(
+        &[
+            "--spawn", "tiny", "--cache", "0.01", "--width", "8", "--height", "8", "--spp", "1",
+        ],
+        &out,
+        None,
+    );
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("largest chunk"), "{}", stderr(&o));
+    assert!(!out.exists());
+}
+
+#[test]
+fn interrupting_the_host_stops_every_process() {
+    let dir = scratch("ctrl-c");
+    let out = dir.join("never.png");
+    let mut child = host()
+        .args([
+            "render", "--spawn", "tiny", "--spp", "4096", "--width", "200", "--height", "200",
+            "--quiet", "-o",
+        ])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id();
+    // Wait until the nodes are running.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    let mut kids = Vec::new();
+    while std::time::Instant::now() < deadline {
+        kids = children_of(pid);
+        if kids.len() == 5 {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    assert_eq!(kids.len(), 5, "the host should have started 5 nodes");
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_raw(pid as i32).unwrap(),
+        rustix::process::Signal::INT,
+    );
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130));
+    assert!(!out.exists(), "no image after an interrupt");
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    for k in kids {
+        assert!(exited(k), "node process {k} outlived the host");
+    }
+}
+
+/// Processes whose parent is `pid`.
+fn children_of(pid: u32) -> Vec<u64> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Ok(p) = e.file_name().to_string_lossy().parse::<u64>() else {
+            continue;
+        };
+        if let Ok(stat) = std::fs::read_to_string(format!("/proc/{p}/stat")) {
+            let after = stat.rsplit_once(')').map(|x| x.1).unwrap_or("");
+            let ppid = after
+                .split_whitespace()
+                .nth(1)
+                .and_then(|s| s.parse::<u32>().ok());
+            if ppid == Some(pid) && !stat.contains(") Z ") {
+                out.push(p);
+            }
+        }
+    }
+    out
+}

@@ -1,0 +1,502 @@
+//! Faults during a render, with real processes killed by signal: a lost render node's work
+//! moves to the others and the image is the same bytes as one process makes; a lost fork
+//! node or host ends everything cleanly and writes no image; strangers and late joiners are
+//! refused without disturbing the render.
+//!
+//! The clusters here are started by hand (`--listen` plus node processes the test starts),
+//! as a user on a LAN would, so the test knows each process and its node id.
+
+mod common;
+use common::*;
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+const SECRET: &str = "fault test secret";
+
+/// One cluster at a time: the tests measure how fast faults are noticed, which two cores
+/// shared by several clusters would blur.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn bin(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_magg-host"))
+        .parent()
+        .unwrap()
+        .join(name)
+}
+
+/// A process whose stderr is collected line by line as it runs.
+struct Logged {
+    child: Child,
+    lines: Arc<Mutex<Vec<String>>>,
+}
+
+impl Logged {
+    fn start(cmd: &mut Command) -> Logged {
+        let mut child = cmd
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start process");
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let sink = lines.clone();
+        let err = child.stderr.take().unwrap();
+        std::thread::spawn(move || {
+            for line in BufReader::new(err).lines().map_while(Result::ok) {
+                sink.lock().unwrap().push(line);
+            }
+        });
+        Logged { child, lines }
+    }
+
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn log(&self) -> String {
+        self.lines.lock().unwrap().join("\n")
+    }
+
+    /// The first log line containing `needle`, waiting up to `limit` for it.
+    fn wait_for(&self, needle: &str, limit: Duration) -> Option<String> {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(l) = self
+                .lines
+                .lock()
+                .unwrap()
+                .iter()
+                .find(|l| l.contains(needle))
+            {
+                return Some(l.clone());
+            }
+            if Instant::now() > deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// The exit code, waiting up to `limit`; `None` if it is still running then.
+    fn wait_exit(&mut self, limit: Duration) -> Option<Option<i32>> {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                return Some(s.code());
+            }
+            if Instant::now() > deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Logged {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+struct Cluster {
+    host: Logged,
+    /// Node id to process.
+    nodes: Vec<(u32, Logged)>,
+    out: PathBuf,
+    stats: PathBuf,
+}
+
+fn cornell() -> PathBuf {
+    shared().join("scenes/cornell/cornell.gltf")
+}
+
+/// Starts a listen-mode host rendering `args` for `topology`, then its nodes on loopback
+/// addresses `node_ip`, and waits until the render has begun.
+fn start_cluster(
+    dir: &Path,
+    topology: &str,
+    args: &[&str],
+    node_ip: &dyn Fn(u32) -> String,
+) -> Cluster {
+    start_cluster_on(dir, "127.0.0.1", topology, args, node_ip)
+}
+
+fn start_cluster_on(
+    dir: &Path,
+    host_ip: &str,
+    topology: &str,
+    args: &[&str],
+    node_ip: &dyn Fn(u32) -> String,
+) -> Cluster {
+    let out = dir.join("cluster.png");
+    let stats = dir.join("stats.json");
+    let host = Logged::start(
+        host()
+            .args(["--log", "info", "render", "--quiet", "--topology", topology])
+            .arg("--listen")
+            .arg(format!("{host_ip}:0"))
+            .args(args)
+            .arg("-o")
+            .arg(&out)
+            .arg("--stats")
+            .arg(&stats)
+            .env("MAGG_SECRET", SECRET),
+    );
+    let line = host
+        .wait_for("to join at ", Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("the host did not start listening: {}", host.log()));
+    let addr = line
+        .rsplit("to join at ")
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+    let t = fabric::Topology::preset(topology).unwrap();
+    let (forks, renders) = t.counts();
+    let mut started = Vec::new();
+    for (name, n) in [("magg-fork-node", forks), ("magg-render-node", renders)] {
+        for _ in 0..n {
+            let ip = node_ip(started.len() as u32);
+            started.push(Logged::start(
+                Command::new(bin(name))
+                    .args(["--log", "info", "--join", &addr])
+                    .arg("--listen")
+                    .arg(format!("{ip}:0"))
+                    .env("MAGG_SECRET", SECRET),
+            ));
+        }
+    }
+    let mut nodes = Vec::new();
+    for p in started {
+        let line = p
+            .wait_for("joined as ", Duration::from_secs(30))
+            .unwrap_or_else(|| panic!("a node did not join: {}", p.log()));
+        let id: u32 = line
+            .split("joined as ")
+            .nth(1)
+            .and_then(|r| r.split(';').next())
+            .and_then(|r| r.split_whitespace().last())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no node id in {line:?}"));
+        nodes.push((id, p));
+    }
+    host.wait_for("subscreens on", Duration::from_secs(60))
+        .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
+    Cluster {
+        host,
+        nodes,
+        out,
+        stats,
+    }
+}
+
+impl Cluster {
+    fn node(&mut self, id: u32) -> &mut Logged {
+        &mut self
+            .nodes
+            .iter_mut()
+            .find(|(n, _)| *n == id)
+            .unwrap_or_else(|| panic!("no node {id}"))
+            .1
+    }
+
+    /// Every node process has exited within `limit`.
+    fn nodes_exit(&mut self, limit: Duration) {
+        for (id, p) in &mut self.nodes {
+            assert!(
+                p.wait_exit(limit).is_some(),
+                "node {id} (pid {}) is still running: {}",
+                p.pid(),
+                p.log()
+            );
+        }
+    }
+
+    fn stats(&self) -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(&self.stats).unwrap()).unwrap()
+    }
+}
+
+fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
+    let out = dir.join("one-process.png");
+    let o = run(host()
+        .args(["render", "--quiet", "--in-process"])
+        .args(args)
+        .arg("-o")
+        .arg(&out));
+    assert!(o.status.success(), "{}", stderr(&o));
+    out
+}
+
+fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+fn localhost(_: u32) -> String {
+    "127.0.0.1".into()
+}
+
+/// A render long enough (several seconds on two cores) that a kill lands in its middle.
+fn long_render(scene: &Path) -> Vec<String> {
+    [
+        scene.to_str().unwrap(),
+        "--width",
+        "96",
+        "--height",
+        "96",
+        "--spp",
+        "160",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
+}
+
+#[test]
+fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
+    let _serial = serial();
+    let dir = scratch("fault-render-node");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    // grid:1x3x3: host 0, fork node 1 linked to render node 2; render nodes 2..=10 in a 3x3
+    // mesh. Node 6 is the middle one: routes between its neighbours must go around it.
+    let mut c = start_cluster(&dir, "grid:1x3x3", &args, &localhost);
+    std::thread::sleep(Duration::from_millis(1000));
+    let killed_at = Instant::now();
+    let victim_pid = c.node(6).pid();
+    c.node(6).kill9();
+    let line = c
+        .host
+        .wait_for("lost render node 6", Duration::from_secs(10))
+        .unwrap_or_else(|| panic!("the host did not report the loss: {}", c.host.log()));
+    let noticed = killed_at.elapsed();
+    assert!(
+        noticed < Duration::from_secs(5),
+        "the loss took {noticed:?} to notice"
+    );
+    assert!(
+        line.contains(&format!("pid {victim_pid}")),
+        "the message should name the process: {line}"
+    );
+    let code = c.host.wait_exit(Duration::from_secs(120));
+    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
+    c.nodes_exit(Duration::from_secs(10));
+    let stats = c.stats();
+    let lost = stats["lost_nodes"].as_array().unwrap();
+    assert_eq!(lost.len(), 1, "{stats}");
+    assert_eq!(lost[0]["node"], 6);
+    assert_eq!(lost[0]["pid"], victim_pid);
+    assert!(
+        lost[0]["subscreens_reassigned"].as_u64().unwrap() >= 1,
+        "a node killed mid-render had work to hand on: {stats}"
+    );
+    same_bytes(&c.out, &in_process(&dir, &args));
+}
+
+#[test]
+fn render_nodes_cut_off_by_a_loss_hand_their_work_on_too() {
+    let _serial = serial();
+    let dir = scratch("fault-cut-off");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    // grid:1x1x3: fork node 1 - render 2 - render 3 - render 4, a chain. Losing node 3
+    // leaves node 4 alive but with no way to the fork node: it must be stopped and its
+    // work done by node 2.
+    let mut c = start_cluster(&dir, "grid:1x1x3", &args, &localhost);
+    std::thread::sleep(Duration::from_millis(800));
+    c.node(3).kill9();
+    c.host
+        .wait_for("lost render node 3", Duration::from_secs(10))
+        .unwrap_or_else(|| panic!("{}", c.host.log()));
+    let line = c
+        .host
+        .wait_for("lost render node 4", Duration::from_secs(10))
+        .unwrap_or_else(|| panic!("node 4 should count as lost: {}", c.host.log()));
+    assert!(line.contains("cut off"), "{line}");
+    let code = c.host.wait_exit(Duration::from_secs(180));
+    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
+    c.nodes_exit(Duration::from_secs(10));
+    let stats = c.stats();
+    let lost: Vec<u64> = stats["lost_nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["node"].as_u64().unwrap())
+        .collect();
+    assert_eq!(lost, vec![3, 4], "{stats}");
+    same_bytes(&c.out, &in_process(&dir, &args));
+}
+
+#[test]
+fn a_killed_fork_node_ends_the_render_with_no_image() {
+    let _serial = serial();
+    let dir = scratch("fault-fork-node");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    std::thread::sleep(Duration::from_millis(800));
+    let fork_pid = c.node(1).pid();
+    let killed_at = Instant::now();
+    c.node(1).kill9();
+    let code = c.host.wait_exit(Duration::from_secs(10));
+    assert!(
+        matches!(code, Some(Some(c)) if c != 0),
+        "the host should fail within 10 s, got {code:?}: {}",
+        c.host.log()
+    );
+    assert!(killed_at.elapsed() < Duration::from_secs(10));
+    let log = c.host.log();
+    assert!(
+        log.contains("lost fork node 1") && log.contains(&format!("pid {fork_pid}")),
+        "the error should name the fork node and its process: {log}"
+    );
+    assert!(log.contains("no image is written"), "{log}");
+    assert!(!c.out.exists(), "no image after a failed render");
+    c.nodes_exit(Duration::from_secs(10));
+}
+
+#[test]
+fn a_killed_host_stops_every_node() {
+    let _serial = serial();
+    let dir = scratch("fault-host");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    std::thread::sleep(Duration::from_millis(800));
+    c.host.kill9();
+    let killed_at = Instant::now();
+    c.nodes_exit(Duration::from_secs(10));
+    assert!(killed_at.elapsed() < Duration::from_secs(10));
+    for (id, p) in &c.nodes {
+        assert!(
+            p.log().contains("lost the host"),
+            "node {id} should say why it stopped: {}",
+            p.log()
+        );
+    }
+    assert!(!c.out.exists());
+}
+
+#[test]
+fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
+    let _serial = serial();
+    let dir = scratch("fault-strangers");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    let line = c.host.wait_for("to join at ", Duration::ZERO).unwrap();
+    let addr = line
+        .rsplit("to join at ")
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+
+    let join = |secret: &str| {
+        run(Command::new(bin("magg-render-node"))
+            .args([
+                "--join",
+                &addr,
+                "--listen",
+                "127.0.0.1:0",
+                "--timeout",
+                "20",
+            ])
+            .env("MAGG_SECRET", secret))
+    };
+    // The wrong secret.
+    let o = join("not the secret");
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("secret"), "{}", stderr(&o));
+    // The right secret, but the cluster is full and busy.
+    let o = join(SECRET);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("full"), "{}", stderr(&o));
+    // Another protocol version, by hand.
+    let mut s = std::net::TcpStream::connect(&addr).unwrap();
+    let hello = protocol::Message::Hello {
+        version: 99,
+        cluster_id: "magg".into(),
+        nonce: [7; 32],
+        identity: protocol::Identity {
+            role: protocol::Role::Render,
+            node: None,
+            kind: protocol::ConnectionKind::Control,
+        },
+    };
+    let f = protocol::Frame::new(0, 0, &hello, Box::new([]));
+    let mut bytes = f.header.encode().to_vec();
+    bytes.extend_from_slice(&f.meta);
+    s.write_all(&bytes).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let mut reply = Vec::new();
+    let _ = s.read_to_end(&mut reply);
+    let text = String::from_utf8_lossy(&reply);
+    assert!(
+        text.contains("version"),
+        "the refusal should say why: {text:?}"
+    );
+
+    let code = c.host.wait_exit(Duration::from_secs(120));
+    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
+    c.nodes_exit(Duration::from_secs(10));
+    assert!(c.stats()["lost_nodes"].as_array().unwrap().is_empty());
+    same_bytes(&c.out, &in_process(&dir, &args));
+}
+
+/// A cluster by hand on several addresses, as on a LAN: the host and every node on its own
+/// loopback address (127.0.0.0/8 is all local on Linux), each found by the address it
+/// advertises.
+#[test]
+fn a_cluster_by_hand_on_separate_addresses() {
+    let _serial = serial();
+    let dir = scratch("lan");
+    let scene = cornell();
+    let args = [
+        scene.to_str().unwrap(),
+        "--width",
+        "48",
+        "--height",
+        "48",
+        "--spp",
+        "16",
+    ];
+    let ip = |i: u32| format!("127.0.1.{}", 10 + i);
+    let mut c = start_cluster_on(&dir, "127.0.0.2", "tiny", &args, &ip);
+    assert_eq!(
+        c.host.wait_exit(Duration::from_secs(120)),
+        Some(Some(0)),
+        "{}",
+        c.host.log()
+    );
+    c.nodes_exit(Duration::from_secs(10));
+    let stats = c.stats();
+    let mut seen = std::collections::HashSet::new();
+    for m in stats["members"].as_array().unwrap() {
+        let a = m["advertise"].as_str().unwrap();
+        assert!(
+            a.starts_with("127.0.1."),
+            "{a} is not the address the node listened on"
+        );
+        assert!(
+            seen.insert(a.split(':').next().unwrap().to_string()),
+            "{a} twice"
+        );
+    }
+    assert_eq!(seen.len(), 5);
+    same_bytes(&c.out, &in_process(&dir, &args));
+}

@@ -1,0 +1,91 @@
+//! Every real glTF scene in `../shared/scenes/khronos` loads, except the one that requires an
+//! extension magg does not implement, which is refused with that extension's name.
+
+mod common;
+use common::*;
+
+use renderer::PrepareOptions;
+
+pub fn khronos_files() -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let root = shared().join("scenes/khronos");
+    let mut stack = vec![root];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if matches!(p.extension().and_then(|e| e.to_str()), Some("gltf" | "glb")) {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn every_khronos_scene_loads_or_is_refused_by_name() {
+    let files = khronos_files();
+    assert_eq!(files.len(), 42);
+    for f in files {
+        let name = f.file_name().unwrap().to_string_lossy().into_owned();
+        match scene_io::load_gltf(&f) {
+            Ok(loaded) => {
+                let tris = loaded.desc.triangle_count();
+                let (scene, _data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
+                scene.validate().unwrap();
+                eprintln!(
+                    "{name}: {tris} triangles, {} chunks, {} lights, warnings {:?}",
+                    scene.chunks.len(),
+                    scene.lights.len(),
+                    loaded.warnings
+                );
+                if name != "MeshPrimitiveModes.gltf" {
+                    assert!(tris > 0, "{name} has no triangles");
+                }
+            }
+            Err(e) => {
+                assert_eq!(name, "IridescenceSuzanne.glb", "{name} failed to load: {e}");
+                assert!(e.to_string().contains("KHR_materials_iridescence"), "{e}");
+            }
+        }
+    }
+}
+
+#[test]
+fn every_khronos_scene_renders_finite_with_both_integrators() {
+    use renderer::{IntegratorKind, RenderSettings, render::render_image};
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    for f in khronos_files() {
+        let Ok(loaded) = scene_io::load_gltf(&f) else {
+            continue;
+        };
+        let (scene, data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
+        let camera = scene.camera(None, 1.0).unwrap();
+        for integrator in [IntegratorKind::Path, IntegratorKind::Whitted] {
+            let s = RenderSettings {
+                width: 24,
+                height: 24,
+                spp: 2,
+                integrator,
+                max_depth: 16,
+                ..RenderSettings::default()
+            };
+            let (img, stats) =
+                render_image(&scene, &data, &camera, &s, 2, 8, &cancel, &|_, _| {}).unwrap();
+            let name = f.file_name().unwrap().to_string_lossy();
+            assert_eq!(
+                stats.bad_samples, 0,
+                "{name} ({integrator}): NaN or infinite samples"
+            );
+            assert!(
+                img.pixels
+                    .iter()
+                    .flatten()
+                    .all(|v| v.is_finite() && *v >= 0.0),
+                "{name} ({integrator})"
+            );
+        }
+    }
+}
