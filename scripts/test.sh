@@ -1,11 +1,19 @@
 #!/usr/bin/env bash
 # Every test: the workspace's tests (unit, property, golden-image, cross-process, cluster, and
-# the replay of the fuzzing corpus), then a short bounded fuzz run of every target when
+# the replay of the fuzzing corpus), the container deployment's tests when a Docker daemon
+# answers, then a short bounded fuzz run of every target when
 # cargo-fuzz is installed (.ci/run installs it). Needs ../shared beside the repository.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 cargo test --workspace --release
+
+# The container deployment needs a Docker daemon; without one it is skipped, and says so.
+if docker info >/dev/null 2>&1; then
+    cargo test --release --test docker -- --ignored --test-threads=1
+else
+    echo "SKIPPED: tests/docker.rs (no Docker daemon answers 'docker info')"
+fi
 
 if cargo fuzz --version >/dev/null 2>&1; then
     scripts/fuzz.sh "${MAGG_FUZZ_SECONDS:-15}"

@@ -1,0 +1,441 @@
+//! The container deployment, for real: the image built from nothing by
+//! `deploy/build-images.sh`, the cluster brought up by `deploy/docker-compose.yml`, node
+//! containers killed, cut off the network or impersonated mid-render, and the same compose
+//! file deployed on a single-node Docker Swarm.
+//!
+//! These tests need a Docker daemon, so they are `#[ignore]`d: `scripts/test.sh` runs them
+//! (one at a time) when `docker info` answers, and says in one line that they were skipped
+//! when it does not.
+
+mod common;
+use common::*;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::{Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn docker(args: &[&str]) -> Output {
+    Command::new("docker")
+        .args(args)
+        .output()
+        .expect("run docker")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// Builds the image once for every test here, with the project's own script.
+fn image() {
+    static BUILT: OnceLock<Result<(), String>> = OnceLock::new();
+    let r = BUILT.get_or_init(|| {
+        let o = run(&mut Command::new(repo().join("deploy/build-images.sh")));
+        if o.status.success() {
+            eprintln!("{}", text(&o).trim());
+            Ok(())
+        } else {
+            Err(text(&o))
+        }
+    });
+    if let Err(e) = r {
+        panic!("deploy/build-images.sh failed: {e}");
+    }
+}
+
+/// One compose project: its own name, network, folders and secret.
+struct Project {
+    name: String,
+    dir: PathBuf,
+    files: Vec<PathBuf>,
+    env: Vec<(String, String)>,
+}
+
+impl Project {
+    fn new(name: &str, small: bool, render_args: &str) -> Project {
+        image();
+        let dir = scratch(&format!("docker-{name}"));
+        let out = dir.join("out");
+        let secrets = dir.join("secrets");
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&secrets).unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&out, std::fs::Permissions::from_mode(0o777)).unwrap();
+        std::fs::set_permissions(&secrets, std::fs::Permissions::from_mode(0o700)).unwrap();
+        let secret = secrets.join("magg_secret");
+        std::fs::write(&secret, format!("docker test secret {name}")).unwrap();
+        std::fs::set_permissions(&secret, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let mut files = vec![repo().join("deploy/docker-compose.yml")];
+        if small {
+            files.push(repo().join("deploy/docker-compose.small.yml"));
+        }
+        let env = vec![
+            (
+                "MAGG_INPUT".into(),
+                shared().join("scenes").display().to_string(),
+            ),
+            ("MAGG_OUT".into(), out.display().to_string()),
+            ("MAGG_SECRET_FILE".into(), secret.display().to_string()),
+            ("MAGG_RENDER_ARGS".into(), render_args.into()),
+        ];
+        let p = Project {
+            name: format!("maggtest{name}"),
+            dir,
+            files,
+            env,
+        };
+        p.down();
+        p
+    }
+
+    fn compose(&self, args: &[&str]) -> Output {
+        let mut c = Command::new("docker-compose");
+        c.arg("-p").arg(&self.name);
+        for f in &self.files {
+            c.arg("-f").arg(f);
+        }
+        c.args(args).envs(self.env.iter().map(|(k, v)| (k, v)));
+        c.output().expect("run docker-compose")
+    }
+
+    fn down(&self) {
+        let _ = self.compose(&["down", "--volumes", "--remove-orphans", "--timeout", "2"]);
+    }
+
+    fn out(&self) -> PathBuf {
+        self.dir.join("out/magg.png")
+    }
+
+    fn stats(&self) -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(self.dir.join("out/magg.png.stats.json")).unwrap())
+            .unwrap()
+    }
+
+    fn network(&self) -> String {
+        format!("{}_magg", self.name)
+    }
+
+    /// Container ids of a service.
+    fn containers(&self, service: &str) -> Vec<String> {
+        let o = self.compose(&["ps", "-q", service]);
+        String::from_utf8_lossy(&o.stdout)
+            .split_whitespace()
+            .map(str::to_string)
+            .collect()
+    }
+
+    fn host_log(&self) -> String {
+        text(&self.compose(&["logs", "--no-color", "magg-host"]))
+    }
+
+    /// Starts the cluster in the background and waits until the render has begun.
+    fn start(&self) {
+        let o = self.compose(&["up", "-d"]);
+        assert!(o.status.success(), "compose up: {}", text(&o));
+        self.wait_log("subscreens on", Duration::from_secs(180));
+    }
+
+    fn wait_log(&self, needle: &str, limit: Duration) -> String {
+        let deadline = Instant::now() + limit;
+        loop {
+            let log = self.host_log();
+            if log.contains(needle) {
+                return log;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "no {needle:?} in the host's log within {limit:?}: {log}"
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// The host container's exit code, waiting up to `limit`.
+    fn host_exit(&self, limit: Duration) -> Option<i64> {
+        let id = self
+            .containers("magg-host")
+            .pop()
+            .expect("a host container");
+        wait_exit(&id, limit)
+    }
+
+    /// Every container of the project has stopped within `limit`.
+    fn all_stopped(&self, limit: Duration) {
+        for service in ["magg-host", "fork-node", "render-node"] {
+            for id in self.containers(service) {
+                assert!(
+                    wait_exit(&id, limit).is_some(),
+                    "{service} container {id} still runs: {}",
+                    text(&docker(&["logs", &id]))
+                );
+            }
+        }
+    }
+}
+
+impl Drop for Project {
+    fn drop(&mut self) {
+        self.down();
+    }
+}
+
+/// A container's exit code once it has stopped, waiting up to `limit`.
+fn wait_exit(id: &str, limit: Duration) -> Option<i64> {
+    let deadline = Instant::now() + limit;
+    loop {
+        let o = docker(&[
+            "inspect",
+            "--format",
+            "{{.State.Status}} {{.State.ExitCode}}",
+            id,
+        ]);
+        let s = String::from_utf8_lossy(&o.stdout).trim().to_string();
+        if let Some(code) = s.strip_prefix("exited ") {
+            return code.parse().ok();
+        }
+        if Instant::now() > deadline {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+/// What the same settings give in one process here.
+fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
+    let out = dir.join("one-process.png");
+    let scenes = shared().join("scenes");
+    let args: Vec<String> = args
+        .iter()
+        .map(|a| match a.strip_prefix("/input/") {
+            Some(rest) => scenes.join(rest).display().to_string(),
+            None => a.to_string(),
+        })
+        .collect();
+    let o = run(host()
+        .args(["render", "--quiet", "--in-process"])
+        .args(&args)
+        .arg("-o")
+        .arg(&out));
+    assert!(o.status.success(), "{}", stderr(&o));
+    out
+}
+
+fn same_bytes(a: &Path, b: &Path) {
+    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(x == y, "{} and {} differ", a.display(), b.display());
+}
+
+/// One cluster at a time on a two-core machine.
+static SERIAL: Mutex<()> = Mutex::new(());
+
+const SMALL_RENDER: &[&str] = &[
+    "/input/cornell/cornell.gltf",
+    "--width",
+    "64",
+    "--height",
+    "64",
+    "--spp",
+    "16",
+];
+
+/// Long enough (several seconds) that a fault lands in the middle of it.
+const LONG_RENDER: &[&str] = &[
+    "/input/cornell/cornell.gltf",
+    "--width",
+    "96",
+    "--height",
+    "96",
+    "--spp",
+    "400",
+];
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn the_magg_topology_in_containers_matches_one_process() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("magg", false, &SMALL_RENDER.join(" "));
+    let t0 = Instant::now();
+    let o = p.compose(&["up", "--exit-code-from", "magg-host"]);
+    assert!(o.status.success(), "compose up: {}", text(&o));
+    eprintln!(
+        "86 containers: up, render and stop in {:.1} s",
+        t0.elapsed().as_secs_f64()
+    );
+    let stats = p.stats();
+    let members = stats["members"].as_array().unwrap();
+    assert_eq!(members.len(), 85, "{stats}");
+    let ips: std::collections::HashSet<&str> = members
+        .iter()
+        .map(|m| m["advertise"].as_str().unwrap().split(':').next().unwrap())
+        .collect();
+    assert_eq!(ips.len(), 85, "every node in its own container: {ips:?}");
+    same_bytes(&p.out(), &in_process(&p.dir, SMALL_RENDER));
+    p.all_stopped(Duration::from_secs(10));
+}
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn a_killed_and_a_disconnected_render_node_leave_the_image_unchanged() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("rendernode", true, &LONG_RENDER.join(" "));
+    p.start();
+    std::thread::sleep(Duration::from_millis(500));
+    let renders = p.containers("render-node");
+    assert_eq!(renders.len(), 4);
+    // One killed outright, one cut off the network (only missed heartbeats tell).
+    let o = docker(&["kill", &renders[0]]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = docker(&[
+        "network",
+        "disconnect",
+        "--force",
+        &p.network(),
+        &renders[1],
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let code = p.host_exit(Duration::from_secs(180));
+    let log = p.host_log();
+    assert_eq!(code, Some(0), "host: {log}");
+    assert_eq!(log.matches("lost render node").count(), 2, "{log}");
+    let stats = p.stats();
+    let lost = stats["lost_nodes"].as_array().unwrap();
+    assert_eq!(lost.len(), 2, "{stats}");
+    same_bytes(&p.out(), &in_process(&p.dir, LONG_RENDER));
+}
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn a_killed_fork_node_container_ends_the_render_cleanly() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("forknode", true, &LONG_RENDER.join(" "));
+    p.start();
+    let fork = p.containers("fork-node").pop().unwrap();
+    let killed = Instant::now();
+    assert!(docker(&["kill", &fork]).status.success());
+    let code = p.host_exit(Duration::from_secs(10));
+    assert!(
+        matches!(code, Some(c) if c != 0),
+        "the host should fail within 10 s: {code:?} {}",
+        p.host_log()
+    );
+    assert!(killed.elapsed() < Duration::from_secs(10));
+    assert!(p.host_log().contains("lost fork node"), "{}", p.host_log());
+    assert!(!p.out().exists(), "no image after a failed render");
+    p.all_stopped(Duration::from_secs(10));
+}
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn a_killed_host_container_stops_every_node() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("host", true, &LONG_RENDER.join(" "));
+    p.start();
+    let host = p.containers("magg-host").pop().unwrap();
+    assert!(docker(&["kill", &host]).status.success());
+    p.all_stopped(Duration::from_secs(10));
+    for id in p.containers("render-node") {
+        let log = text(&docker(&["logs", &id]));
+        assert!(log.contains("lost the host"), "{log}");
+    }
+    assert!(!p.out().exists());
+}
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn a_container_with_the_wrong_secret_is_refused_and_the_render_goes_on() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("secret", true, &LONG_RENDER.join(" "));
+    p.start();
+    let o = docker(&[
+        "run",
+        "--rm",
+        "--network",
+        &p.network(),
+        "--entrypoint",
+        "/bin/magg-render-node",
+        "magg:latest",
+        "--join",
+        "magg-host:7000",
+        "--secret",
+        "not the cluster secret",
+        "--timeout",
+        "20",
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("secret"), "{}", text(&o));
+    let code = p.host_exit(Duration::from_secs(180));
+    let log = p.host_log();
+    assert_eq!(code, Some(0), "{log}");
+    assert!(
+        log.contains("refused"),
+        "the host should log the refusal: {log}"
+    );
+    same_bytes(&p.out(), &in_process(&p.dir, LONG_RENDER));
+}
+
+#[test]
+#[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
+fn the_compose_file_deploys_on_a_single_node_swarm() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let p = Project::new("swarm", true, &SMALL_RENDER.join(" "));
+    let state = docker(&["info", "--format", "{{.Swarm.LocalNodeState}}"]);
+    let ours = String::from_utf8_lossy(&state.stdout).trim() != "active";
+    if ours {
+        let o = docker(&["swarm", "init", "--advertise-addr", "127.0.0.1"]);
+        assert!(o.status.success(), "swarm init: {}", text(&o));
+    }
+    struct Leave(bool, &'static str);
+    impl Drop for Leave {
+        fn drop(&mut self) {
+            let _ = docker(&["stack", "rm", self.1]);
+            std::thread::sleep(Duration::from_secs(2));
+            if self.0 {
+                let _ = docker(&["swarm", "leave", "--force"]);
+            }
+        }
+    }
+    let stack = "maggswarmtest";
+    let _leave = Leave(ours, stack);
+    let mut cmd = Command::new("docker");
+    cmd.args(["stack", "deploy"]);
+    for f in &p.files {
+        cmd.arg("-c").arg(f);
+    }
+    cmd.arg(stack)
+        .envs(p.env.iter().map(|(k, v)| (k, v)))
+        .env("MAGG_NETWORK_DRIVER", "overlay");
+    let o = run(&mut cmd);
+    assert!(o.status.success(), "stack deploy: {}", text(&o));
+    // The host's task ends when the image is written.
+    let deadline = Instant::now() + Duration::from_secs(240);
+    let state = loop {
+        let o = docker(&[
+            "service",
+            "ps",
+            "--no-trunc",
+            "--format",
+            "{{.CurrentState}} {{.Error}}",
+            &format!("{stack}_magg-host"),
+        ]);
+        let s = String::from_utf8_lossy(&o.stdout).trim().to_string();
+        if s.starts_with("Complete") || s.starts_with("Failed") || s.starts_with("Rejected") {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the swarm render did not end: {s}"
+        );
+        std::thread::sleep(Duration::from_secs(1));
+    };
+    let logs = text(&docker(&["service", "logs", &format!("{stack}_magg-host")]));
+    assert!(state.starts_with("Complete"), "{state}: {logs}");
+    same_bytes(&p.out(), &in_process(&p.dir, SMALL_RENDER));
+}
