@@ -107,6 +107,7 @@ pub async fn form(
     cluster_id: &str,
     timeout: Duration,
     progress: &(dyn Fn(usize, usize) + Sync),
+    announce_joins: bool,
 ) -> Result<Formed, ClusterError> {
     let topology = Arc::new(topology);
     let (fabric, mut inbox) = Fabric::new(
@@ -230,7 +231,16 @@ pub async fn form(
                 {
                     continue;
                 }
-                tracing::debug!("{role} {node} joined from {advertise} (pid {pid} on {hostname})");
+                // Nodes started by hand are worth a line each; the host's own children not.
+                let line = format!(
+                    "{role} {node} joined from {advertise} (pid {pid} on {hostname}); {} of {slots}",
+                    members.len() + 1
+                );
+                if announce_joins {
+                    tracing::info!("{line}");
+                } else {
+                    tracing::debug!("{line}");
+                }
                 fabric.set_same_machine(node, boot_id == my_boot);
                 fabric.attach(node, ConnectionKind::Control, reader, writer);
                 members.insert(

@@ -37,6 +37,7 @@ async fn tiny_cluster_forms_and_routes() {
         "magg",
         Duration::from_secs(20),
         &|_, _| {},
+        false,
     )
     .await;
     let mut nodes = Vec::new();

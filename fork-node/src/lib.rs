@@ -214,6 +214,7 @@ impl State {
                     bytes_served: self.bytes_served.load(Ordering::Relaxed),
                     bytes_gbus: self.bytes_gbus.load(Ordering::Relaxed),
                     frames_forwarded: c.frames_forwarded,
+                    frames_around_mesh: c.frames_around_mesh,
                     bytes_forwarded: c.bytes_forwarded,
                     peak_rss_bytes: peak_rss_bytes(),
                     ..NodeStats::default()

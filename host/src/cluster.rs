@@ -125,6 +125,7 @@ pub async fn start_on(
         &config.cluster_id,
         config.join_timeout,
         progress,
+        matches!(config.mode, ClusterMode::Listen(_)),
     )
     .await?;
     Ok(Cluster { formed, local })

@@ -315,32 +315,12 @@ impl Faults {
             after_s: self.started.elapsed().as_secs_f64(),
             subscreens_reassigned: 0,
         });
-        // Render nodes that the loss cut off from the fork nodes can no longer fetch the
-        // scene: they are told to stop and count as lost too, so their work moves to nodes
-        // that can still do it.
-        let mut lost = vec![peer];
-        let master = topo.master_fork();
-        let cut_off: Vec<NodeId> = topo
-            .render_nodes()
-            .into_iter()
-            .filter(|&n| f.is_alive(n) && !f.reachable(master, n))
-            .collect();
-        for n in cut_off {
-            let why = format!("cut off from the fork nodes when node {peer} was lost");
-            let _ = f.send_control(
-                n,
-                &Message::Shutdown {
-                    reason: why.clone(),
-                },
-            );
-            lost.extend(self.on_lost(cluster, n, &why)?);
-        }
         if !topo.render_nodes().into_iter().any(|n| f.is_alive(n)) {
             return Err(ClusterRenderError::Failed(
                 "every render node is lost; no image is written".into(),
             ));
         }
-        Ok(lost)
+        Ok(vec![peer])
     }
 }
 
@@ -706,6 +686,7 @@ async fn drive(
         totals.bytes_served += n.bytes_served;
         totals.bytes_gbus += n.bytes_gbus;
         totals.frames_forwarded += n.frames_forwarded;
+        totals.frames_around_mesh += n.frames_around_mesh;
         totals.bytes_forwarded += n.bytes_forwarded;
         totals.busy_s += n.busy_s;
         totals.waiting_s += n.waiting_s;

@@ -297,6 +297,8 @@ pub struct NodeStats {
     pub bytes_served: u64,
     pub bytes_gbus: u64,
     pub frames_forwarded: u64,
+    /// Frames that took a direct or control connection because lost nodes cut the mesh.
+    pub frames_around_mesh: u64,
     pub bytes_forwarded: u64,
     pub busy_s: f64,
     pub waiting_s: f64,

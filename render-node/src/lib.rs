@@ -321,6 +321,7 @@ fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> No
         bytes_fetched_dma: cache.map_or(0, |c| g(&c.stats.bytes_dma)),
         bytes_fetched_serial: cache.map_or(0, |c| g(&c.stats.bytes_serial)),
         frames_forwarded: c.frames_forwarded,
+        frames_around_mesh: c.frames_around_mesh,
         bytes_forwarded: c.bytes_forwarded,
         busy_s: render.saturating_sub(wait) as f64 * 1e-9,
         waiting_s: wait as f64 * 1e-9,
