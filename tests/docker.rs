@@ -406,12 +406,12 @@ fn the_compose_file_deploys_on_a_single_node_swarm() {
     let _leave = Leave(ours, stack);
     let mut cmd = Command::new("docker");
     cmd.args(["stack", "deploy"]);
-    for f in &p.files {
+    let mut files = p.files.clone();
+    files.insert(1, repo().join("deploy/docker-compose.swarm.yml"));
+    for f in &files {
         cmd.arg("-c").arg(f);
     }
-    cmd.arg(stack)
-        .envs(p.env.iter().map(|(k, v)| (k, v)))
-        .env("MAGG_NETWORK_DRIVER", "overlay");
+    cmd.arg(stack).envs(p.env.iter().map(|(k, v)| (k, v)));
     let o = run(&mut cmd);
     assert!(o.status.success(), "stack deploy: {}", text(&o));
     // The host's task ends when the image is written.
