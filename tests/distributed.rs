@@ -20,11 +20,6 @@ fn render(args: &[&str], out: &Path, stats: Option<&Path>) -> std::process::Outp
     run(&mut cmd)
 }
 
-fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
-}
-
 fn exited(pid: u64) -> bool {
     match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
         Err(_) => true,

@@ -138,7 +138,13 @@ impl Project {
 
     /// Starts the cluster in the background and waits until the render has begun.
     fn start(&self) {
-        let o = self.compose(&["up", "-d"]);
+        self.start_with(&[]);
+    }
+
+    fn start_with(&self, up_args: &[&str]) {
+        let mut args = vec!["up", "-d"];
+        args.extend_from_slice(up_args);
+        let o = self.compose(&args);
         assert!(o.status.success(), "compose up: {}", text(&o));
         self.wait_log("subscreens on", Duration::from_secs(180));
     }
@@ -226,11 +232,6 @@ fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
         .arg(&out));
     assert!(o.status.success(), "{}", stderr(&o));
     out
-}
-
-fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
 }
 
 /// One cluster at a time on a two-core machine.
@@ -336,8 +337,11 @@ fn a_killed_fork_node_container_ends_the_render_cleanly() {
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn a_killed_host_container_stops_every_node() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let p = Project::new("host", true, &LONG_RENDER.join(" "));
-    p.start();
+    // Sized by hand this time: the base file, a topology, and --scale to match it.
+    let mut p = Project::new("host", false, &LONG_RENDER.join(" "));
+    p.env.push(("MAGG_TOPOLOGY".into(), "grid:1x1x3".into()));
+    p.start_with(&["--scale", "fork-node=1", "--scale", "render-node=3"]);
+    assert_eq!(p.containers("render-node").len(), 3);
     let host = p.containers("magg-host").pop().unwrap();
     assert!(docker(&["kill", &host]).status.success());
     p.all_stopped(Duration::from_secs(10));

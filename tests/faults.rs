@@ -241,11 +241,6 @@ fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
     out
 }
 
-fn same_bytes(a: &Path, b: &Path) {
-    let (x, y) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
-    assert!(x == y, "{} and {} differ", a.display(), b.display());
-}
-
 fn localhost(_: u32) -> String {
     "127.0.0.1".into()
 }
