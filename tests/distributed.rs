@@ -259,24 +259,3 @@ fn interrupting_the_host_stops_every_process() {
         assert!(exited(k), "node process {k} outlived the host");
     }
 }
-
-/// Processes whose parent is `pid`.
-fn children_of(pid: u32) -> Vec<u64> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        let Ok(p) = e.file_name().to_string_lossy().parse::<u64>() else {
-            continue;
-        };
-        if let Ok(stat) = std::fs::read_to_string(format!("/proc/{p}/stat")) {
-            let after = stat.rsplit_once(')').map(|x| x.1).unwrap_or("");
-            let ppid = after
-                .split_whitespace()
-                .nth(1)
-                .and_then(|s| s.parse::<u32>().ok());
-            if ppid == Some(pid) && !stat.contains(") Z ") {
-                out.push(p);
-            }
-        }
-    }
-    out
-}

@@ -500,3 +500,47 @@ fn a_cluster_by_hand_on_separate_addresses() {
     assert_eq!(seen.len(), 5);
     same_bytes(&c.out, &in_process(&dir, &args));
 }
+
+/// The default way to render, a cluster the host spawns itself: a child render node killed
+/// mid-render is handed over like any other.
+#[test]
+fn a_killed_child_of_a_spawning_host_is_handed_over() {
+    let _serial = serial();
+    let dir = scratch("fault-spawned");
+    let args = long_render(&cornell());
+    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let out = dir.join("cluster.png");
+    let mut host = Logged::start(
+        host()
+            .args(["--log", "info", "render", "--quiet", "--spawn", "tiny"])
+            .args(&args)
+            .arg("-o")
+            .arg(&out),
+    );
+    host.wait_for("subscreens on", Duration::from_secs(60))
+        .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
+    std::thread::sleep(Duration::from_millis(800));
+    let render_child = children_of(host.pid())
+        .into_iter()
+        .find(|&p| {
+            std::fs::read(format!("/proc/{p}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains("magg-render-node"))
+                .unwrap_or(false)
+        })
+        .expect("a render node child");
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_raw(render_child as i32).unwrap(),
+        rustix::process::Signal::KILL,
+    );
+    let line = host
+        .wait_for("lost render node", Duration::from_secs(10))
+        .unwrap_or_else(|| panic!("{}", host.log()));
+    assert!(line.contains(&format!("pid {render_child}")), "{line}");
+    assert_eq!(
+        host.wait_exit(Duration::from_secs(120)),
+        Some(Some(0)),
+        "{}",
+        host.log()
+    );
+    same_bytes(&out, &in_process(&dir, &args));
+}
