@@ -254,7 +254,7 @@ fn long_render(scene: &Path) -> Vec<String> {
         "--height",
         "96",
         "--spp",
-        "160",
+        "300",
     ]
     .iter()
     .map(|s| s.to_string())
