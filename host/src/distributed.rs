@@ -280,11 +280,11 @@ impl Faults {
         cluster: &Cluster,
         peer: NodeId,
         reason: &str,
-    ) -> Result<Vec<NodeId>, ClusterRenderError> {
+    ) -> Result<bool, ClusterRenderError> {
         let f = &cluster.formed.fabric;
         let topo = f.topology();
         if peer == 0 || peer as usize >= topo.len() || !f.is_alive(peer) {
-            return Ok(Vec::new());
+            return Ok(false);
         }
         let member = cluster.formed.members.iter().find(|m| m.node == peer);
         let (advertise, pid, hostname) = member.map_or((String::new(), 0, String::new()), |m| {
@@ -320,7 +320,7 @@ impl Faults {
                 "every render node is lost; no image is written".into(),
             ));
         }
-        Ok(vec![peer])
+        Ok(true)
     }
 }
 
@@ -556,17 +556,16 @@ async fn drive(
                 }
             }
             Some(Delivery::Lost { peer, reason, .. }) => {
-                let lost = faults.on_lost(cluster, peer, &reason)?;
-                for &gone in &lost {
-                    work.parked.retain(|p| p.header.sender != gone);
+                if faults.on_lost(cluster, peer, &reason)? {
+                    work.parked.retain(|p| p.header.sender != peer);
                     let mut reassigned = 0;
                     for id in 0..subs.len() {
-                        if subs[id].node == Some(gone) && fb.rows_missing(subs[id].rect) > 0 {
+                        if subs[id].node == Some(peer) && fb.rows_missing(subs[id].rect) > 0 {
                             reassigned += 1;
                             requeue_missing(&mut subs, id, &fb, &mut work.queue);
                         }
                     }
-                    if let Some(l) = faults.lost.iter_mut().find(|l| l.node == gone) {
+                    if let Some(l) = faults.lost.iter_mut().find(|l| l.node == peer) {
                         l.subscreens_reassigned = reassigned;
                     }
                 }
