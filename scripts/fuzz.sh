@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Fuzzes every target for SECONDS (default 60) each, starting from the corpus in
 # fuzz/corpus/<target>/. New inputs found go to a scratch copy, not into the repository;
-# a fixed seed keeps a run repeatable (CI fuzzes the same inputs as a local run of at
-# least that length), and a crash leaves its input in fuzz/artifacts/<target>/ and fails the run.
+# a fixed seed fixes the order of mutations, so CI mostly retraces a local run of at least
+# that length (coverage feedback can still differ a little: hash tables are seeded per
+# process), and a crash leaves its input in fuzz/artifacts/<target>/ and fails the run.
 # cargo-fuzz needs nightly features; RUSTC_BOOTSTRAP lets the stable toolchain provide them.
 set -euo pipefail
 cd "$(dirname "$0")/../fuzz"
