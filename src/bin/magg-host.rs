@@ -561,6 +561,19 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         s.totals.frames_forwarded,
         mib(s.cluster_peak_rss_bytes)
     );
+    for l in &s.lost_nodes {
+        eprintln!(
+            "lost {} {} at {} (pid {} on {}) after {:.1} s: {}; {} subscreens handed on",
+            l.role,
+            l.node,
+            l.advertise,
+            l.pid,
+            l.hostname,
+            l.after_s,
+            l.reason,
+            l.subscreens_reassigned
+        );
+    }
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
