@@ -12,7 +12,7 @@ use common::*;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use std::sync::{Mutex, OnceLock};
+use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 fn repo() -> PathBuf {
@@ -214,9 +214,8 @@ fn wait_exit(id: &str, limit: Duration) -> Option<i64> {
     }
 }
 
-/// What the same settings give in one process here.
-fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
-    let out = dir.join("one-process.png");
+/// What the same settings give in one process here (`/input/` is the shared scenes).
+fn in_process_here(dir: &Path, args: &[&str]) -> PathBuf {
     let scenes = shared().join("scenes");
     let args: Vec<String> = args
         .iter()
@@ -225,17 +224,8 @@ fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
             None => a.to_string(),
         })
         .collect();
-    let o = run(host()
-        .args(["render", "--quiet", "--in-process"])
-        .args(&args)
-        .arg("-o")
-        .arg(&out));
-    assert!(o.status.success(), "{}", stderr(&o));
-    out
+    in_process(dir, &args)
 }
-
-/// One cluster at a time on a two-core machine.
-static SERIAL: Mutex<()> = Mutex::new(());
 
 const SMALL_RENDER: &[&str] = &[
     "/input/cornell/cornell.gltf",
@@ -261,7 +251,7 @@ const LONG_RENDER: &[&str] = &[
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn the_magg_topology_in_containers_matches_one_process() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     let p = Project::new("magg", false, &SMALL_RENDER.join(" "));
     let t0 = Instant::now();
     let o = p.compose(&["up", "--exit-code-from", "magg-host"]);
@@ -278,14 +268,14 @@ fn the_magg_topology_in_containers_matches_one_process() {
         .map(|m| m["advertise"].as_str().unwrap().split(':').next().unwrap())
         .collect();
     assert_eq!(ips.len(), 85, "every node in its own container: {ips:?}");
-    same_bytes(&p.out(), &in_process(&p.dir, SMALL_RENDER));
+    same_bytes(&p.out(), &in_process_here(&p.dir, SMALL_RENDER));
     p.all_stopped(Duration::from_secs(10));
 }
 
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn a_killed_and_a_disconnected_render_node_leave_the_image_unchanged() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     let p = Project::new("rendernode", true, &LONG_RENDER.join(" "));
     p.start();
     std::thread::sleep(Duration::from_millis(500));
@@ -315,13 +305,13 @@ fn a_killed_and_a_disconnected_render_node_leave_the_image_unchanged() {
     let stats = p.stats();
     let lost = stats["lost_nodes"].as_array().unwrap();
     assert_eq!(lost.len(), 2, "{stats}");
-    same_bytes(&p.out(), &in_process(&p.dir, LONG_RENDER));
+    same_bytes(&p.out(), &in_process_here(&p.dir, LONG_RENDER));
 }
 
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn a_killed_fork_node_container_ends_the_render_cleanly() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     let p = Project::new("forknode", true, &LONG_RENDER.join(" "));
     p.start();
     let fork = p.containers("fork-node").pop().unwrap();
@@ -342,7 +332,7 @@ fn a_killed_fork_node_container_ends_the_render_cleanly() {
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn a_killed_host_container_stops_every_node() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     // Sized by hand this time: the base file, a topology, and --scale to match it.
     let mut p = Project::new("host", false, &LONG_RENDER.join(" "));
     p.env.push(("MAGG_TOPOLOGY".into(), "grid:1x1x3".into()));
@@ -361,7 +351,7 @@ fn a_killed_host_container_stops_every_node() {
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn a_container_with_the_wrong_secret_is_refused_and_the_render_goes_on() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     let p = Project::new("secret", true, &LONG_RENDER.join(" "));
     p.start();
     let o = docker(&[
@@ -388,13 +378,13 @@ fn a_container_with_the_wrong_secret_is_refused_and_the_render_goes_on() {
         log.contains("refused"),
         "the host should log the refusal: {log}"
     );
-    same_bytes(&p.out(), &in_process(&p.dir, LONG_RENDER));
+    same_bytes(&p.out(), &in_process_here(&p.dir, LONG_RENDER));
 }
 
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
 fn the_compose_file_deploys_on_a_single_node_swarm() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _serial = serial();
     let p = Project::new("swarm", true, &SMALL_RENDER.join(" "));
     let state = docker(&["info", "--format", "{{.Swarm.LocalNodeState}}"]);
     let ours = String::from_utf8_lossy(&state.stdout).trim() != "active";
@@ -447,5 +437,5 @@ fn the_compose_file_deploys_on_a_single_node_swarm() {
     };
     let logs = text(&docker(&["service", "logs", &format!("{stack}_magg-host")]));
     assert!(state.starts_with("Complete"), "{state}: {logs}");
-    same_bytes(&p.out(), &in_process(&p.dir, SMALL_RENDER));
+    same_bytes(&p.out(), &in_process_here(&p.dir, SMALL_RENDER));
 }

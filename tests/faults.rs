@@ -9,6 +9,7 @@
 mod common;
 use common::*;
 
+use std::ffi::OsStr;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -16,14 +17,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const SECRET: &str = "fault test secret";
-
-/// One cluster at a time: the tests measure how fast faults are noticed, which two cores
-/// shared by several clusters would blur.
-static SERIAL: Mutex<()> = Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
 
 fn bin(name: &str) -> PathBuf {
     Path::new(env!("CARGO_BIN_EXE_magg-host"))
@@ -123,22 +116,18 @@ fn cornell() -> PathBuf {
     shared().join("scenes/cornell/cornell.gltf")
 }
 
-/// Starts a listen-mode host rendering `args` for `topology`, then its nodes on loopback
-/// addresses `node_ip`, and waits until the render has begun.
-fn start_cluster(
-    dir: &Path,
-    topology: &str,
-    args: &[&str],
-    node_ip: &dyn Fn(u32) -> String,
-) -> Cluster {
-    start_cluster_on(dir, "127.0.0.1", topology, args, node_ip)
+/// Starts a listen-mode host rendering `args` for `topology`, then its nodes, all on
+/// 127.0.0.1, and waits until the render has begun.
+fn start_cluster<S: AsRef<OsStr>>(dir: &Path, topology: &str, args: &[S]) -> Cluster {
+    start_cluster_on(dir, "127.0.0.1", topology, args, &|_| "127.0.0.1".into())
 }
 
-fn start_cluster_on(
+/// The same with the host on `host_ip` and node `i` (in start order) on `node_ip(i)`.
+fn start_cluster_on<S: AsRef<OsStr>>(
     dir: &Path,
     host_ip: &str,
     topology: &str,
-    args: &[&str],
+    args: &[S],
     node_ip: &dyn Fn(u32) -> String,
 ) -> Cluster {
     let out = dir.join("cluster.png");
@@ -230,46 +219,23 @@ impl Cluster {
     }
 }
 
-fn in_process(dir: &Path, args: &[&str]) -> PathBuf {
-    let out = dir.join("one-process.png");
-    let o = run(host()
-        .args(["render", "--quiet", "--in-process"])
-        .args(args)
-        .arg("-o")
-        .arg(&out));
-    assert!(o.status.success(), "{}", stderr(&o));
-    out
-}
-
-fn localhost(_: u32) -> String {
-    "127.0.0.1".into()
-}
-
-/// A render long enough (several seconds on two cores) that a kill lands in its middle.
-fn long_render(scene: &Path) -> Vec<String> {
-    [
-        scene.to_str().unwrap(),
-        "--width",
-        "96",
-        "--height",
-        "96",
-        "--spp",
-        "300",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect()
+/// The Cornell box, rendered long enough (several seconds on two cores) that a kill lands in
+/// its middle.
+fn long_render() -> Vec<String> {
+    let scene = cornell().display().to_string();
+    [&scene, "--width", "96", "--height", "96", "--spp", "300"]
+        .map(String::from)
+        .to_vec()
 }
 
 #[test]
 fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
     let _serial = serial();
     let dir = scratch("fault-render-node");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let args = long_render();
     // grid:1x3x3: host 0, fork node 1 linked to render node 2; render nodes 2..=10 in a 3x3
     // mesh. Node 6 is the middle one: routes between its neighbours must go around it.
-    let mut c = start_cluster(&dir, "grid:1x3x3", &args, &localhost);
+    let mut c = start_cluster(&dir, "grid:1x3x3", &args);
     std::thread::sleep(Duration::from_millis(1000));
     let killed_at = Instant::now();
     let victim_pid = c.node(6).pid();
@@ -306,12 +272,11 @@ fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
 fn a_render_node_cut_off_from_the_mesh_works_on_over_its_direct_connections() {
     let _serial = serial();
     let dir = scratch("fault-cut-off");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let args = long_render();
     // grid:1x1x3: fork node 1 - render 2 - render 3 - render 4, a chain. Losing node 3
     // leaves node 4 with no mesh path to anyone: its requests for work and data go over
     // its direct connections to the host and the fork node instead.
-    let mut c = start_cluster(&dir, "grid:1x1x3", &args, &localhost);
+    let mut c = start_cluster(&dir, "grid:1x1x3", &args);
     std::thread::sleep(Duration::from_millis(800));
     c.node(3).kill9();
     c.host
@@ -345,9 +310,8 @@ fn a_render_node_cut_off_from_the_mesh_works_on_over_its_direct_connections() {
 fn a_killed_fork_node_ends_the_render_with_no_image() {
     let _serial = serial();
     let dir = scratch("fault-fork-node");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
-    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    let args = long_render();
+    let mut c = start_cluster(&dir, "tiny", &args);
     std::thread::sleep(Duration::from_millis(800));
     let fork_pid = c.node(1).pid();
     let killed_at = Instant::now();
@@ -373,9 +337,8 @@ fn a_killed_fork_node_ends_the_render_with_no_image() {
 fn a_killed_host_stops_every_node() {
     let _serial = serial();
     let dir = scratch("fault-host");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
-    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    let args = long_render();
+    let mut c = start_cluster(&dir, "tiny", &args);
     std::thread::sleep(Duration::from_millis(800));
     c.host.kill9();
     let killed_at = Instant::now();
@@ -395,9 +358,8 @@ fn a_killed_host_stops_every_node() {
 fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
     let _serial = serial();
     let dir = scratch("fault-strangers");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
-    let mut c = start_cluster(&dir, "tiny", &args, &localhost);
+    let args = long_render();
+    let mut c = start_cluster(&dir, "tiny", &args);
     let line = c.host.wait_for("to join at ", Duration::ZERO).unwrap();
     let addr = line
         .rsplit("to join at ")
@@ -507,8 +469,7 @@ fn a_cluster_by_hand_on_separate_addresses() {
 fn a_killed_child_of_a_spawning_host_is_handed_over() {
     let _serial = serial();
     let dir = scratch("fault-spawned");
-    let args = long_render(&cornell());
-    let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let args = long_render();
     let out = dir.join("cluster.png");
     let mut host = Logged::start(
         host()

@@ -96,6 +96,17 @@ pub struct LostNode {
     pub subscreens_reassigned: u32,
 }
 
+impl LostNode {
+    /// Who it was, as the log, the error and the summary name it: "render node 6 at ADDR
+    /// (pid P on HOST)".
+    pub fn who(&self) -> String {
+        format!(
+            "{} {} at {} (pid {} on {})",
+            self.role, self.node, self.advertise, self.pid, self.hostname
+        )
+    }
+}
+
 /// Cuts the image into about `n` rectangles of similar shape, row by row.
 pub fn subscreens(width: u32, height: u32, n: u32) -> Vec<Rect> {
     let n = n.max(1) as f64;
@@ -291,21 +302,7 @@ impl Faults {
             (m.advertise.clone(), m.pid, m.hostname.clone())
         });
         let role = topo.role(peer);
-        if role != Role::Render {
-            return Err(ClusterRenderError::Failed(format!(
-                "lost {role} {peer} at {advertise} (pid {pid} on {hostname}): {reason}; the render cannot go on without its share of the scene, so the cluster is stopped and no image is written"
-            )));
-        }
-        tracing::warn!(
-            "lost render node {peer} at {advertise} (pid {pid} on {hostname}): {reason}; its unfinished subscreens go to other nodes, and routes go around it"
-        );
-        f.mark_dead(peer);
-        for m in &cluster.formed.members {
-            if m.node != peer && f.is_alive(m.node) {
-                let _ = f.send_control(m.node, &Message::NodeDown { node: peer });
-            }
-        }
-        self.lost.push(LostNode {
+        let lost = LostNode {
             node: peer,
             role: role.to_string(),
             advertise,
@@ -314,7 +311,24 @@ impl Faults {
             reason: reason.to_string(),
             after_s: self.started.elapsed().as_secs_f64(),
             subscreens_reassigned: 0,
-        });
+        };
+        if role != Role::Render {
+            return Err(ClusterRenderError::Failed(format!(
+                "lost {}: {reason}; the render cannot go on without its share of the scene, so the cluster is stopped and no image is written",
+                lost.who()
+            )));
+        }
+        tracing::warn!(
+            "lost {}: {reason}; its unfinished subscreens go to other nodes, and routes go around it",
+            lost.who()
+        );
+        f.mark_dead(peer);
+        for m in &cluster.formed.members {
+            if m.node != peer && f.is_alive(m.node) {
+                let _ = f.send_control(m.node, &Message::NodeDown { node: peer });
+            }
+        }
+        self.lost.push(lost);
         if !topo.render_nodes().into_iter().any(|n| f.is_alive(n)) {
             return Err(ClusterRenderError::Failed(
                 "every render node is lost; no image is written".into(),

@@ -563,12 +563,8 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
     );
     for l in &s.lost_nodes {
         eprintln!(
-            "lost {} {} at {} (pid {} on {}) after {:.1} s: {}; {} subscreens handed on",
-            l.role,
-            l.node,
-            l.advertise,
-            l.pid,
-            l.hostname,
+            "lost {} after {:.1} s: {}; {} subscreens handed on",
+            l.who(),
             l.after_s,
             l.reason,
             l.subscreens_reassigned

@@ -63,3 +63,23 @@ pub fn children_of(pid: u32) -> Vec<u64> {
     }
     out
 }
+
+/// One cluster at a time within a test binary: tests that time how fast faults are noticed,
+/// or start dozens of processes, would blur each other on two cores.
+pub fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Renders `args` (a scene and render flags) in one process into `dir`; the reference a
+/// cluster's image must equal byte for byte.
+pub fn in_process<S: AsRef<std::ffi::OsStr>>(dir: &Path, args: &[S]) -> PathBuf {
+    let out = dir.join("one-process.png");
+    let o = run(host()
+        .args(["render", "--quiet", "--in-process"])
+        .args(args)
+        .arg("-o")
+        .arg(&out));
+    assert!(o.status.success(), "{}", stderr(&o));
+    out
+}
