@@ -9,7 +9,9 @@ cd "$(dirname "$0")/.."
 tag="${1:-magg:latest}"
 target=x86_64-unknown-linux-gnu
 
-RUSTFLAGS="-C target-feature=+crt-static" \
+# RUSTFLAGS replaces .cargo/config.toml's flags, so the instruction set is named again here:
+# the image's binaries must be the same build as binaries built with the config.
+RUSTFLAGS="-C target-feature=+crt-static -C target-cpu=x86-64-v3" \
     cargo build --release --locked --target "$target" \
     --bin magg-host --bin magg-fork-node --bin magg-render-node
 
@@ -17,7 +19,7 @@ context="$(mktemp -d)"
 trap 'rm -rf "$context"' EXIT
 cp deploy/Dockerfile "$context"/
 for b in magg-host magg-fork-node magg-render-node; do
-    cp "target/$target/release/$b" "$context"/
+    cp "${CARGO_TARGET_DIR:-target}/$target/release/$b" "$context"/
     strip "$context/$b" 2>/dev/null || true
 done
 docker build --quiet -t "$tag" "$context" >/dev/null

@@ -119,9 +119,6 @@ pub struct NodeArgs {
     /// Exit when the process that started this one exits (set by the host when it spawns).
     #[arg(long, hide = true)]
     pub die_with_parent: Option<u32>,
-    /// Log level filter.
-    #[arg(long, env = "MAGG_LOG", default_value = "info")]
-    pub log: String,
 }
 
 impl NodeArgs {
@@ -173,6 +170,19 @@ pub async fn stop_signal() -> &'static str {
     }
 }
 
+/// A fork or render node's whole life: dies with a spawning parent, joins the host, serves
+/// its role until the render ends or a stop signal comes. `magg-fork-node`,
+/// `magg-render-node` and `magg-host fork-node|render-node` all run this.
+pub fn node_main(role: protocol::Role, args: &NodeArgs) -> Result<()> {
+    args.arm_parent_death();
+    let join = args.join_config(role)?;
+    match role {
+        protocol::Role::Fork => run_node(fork_node::run(fork_node::Config { join })),
+        protocol::Role::Render => run_node(render_node::run(render_node::Config { join })),
+        protocol::Role::Host => bail!("the host is not a node role"),
+    }
+}
+
 /// Runs a node role until it ends or a stop signal comes (a clean stop: exit status 0).
 pub fn run_node<F, E>(role: F) -> Result<()>
 where
@@ -199,4 +209,63 @@ pub fn node_runtime() -> Result<tokio::runtime::Runtime> {
         .enable_all()
         .build()
         .context("starting the async runtime")
+}
+
+/// The instruction set check every binary runs before anything else (see
+/// [`check_cpu_at_start!`]).
+#[cfg(target_arch = "x86_64")]
+pub mod cpu {
+    /// Exits with a sentence, instead of dying of an illegal instruction later, when this
+    /// processor lacks an instruction-set feature the build was compiled to use
+    /// (`.cargo/config.toml` builds for x86-64-v3). It runs from `.init_array`, before the
+    /// Rust runtime starts, so it uses only integer code, `cpuid` and raw system calls.
+    pub extern "C" fn check_at_start() {
+        use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+        // SAFETY: `cpuid` exists on every x86-64 processor; leaf 7 is read only when the
+        // processor reports it; `xgetbv` only when OSXSAVE says the OS enabled it.
+        let ok = unsafe {
+            let max_leaf = __cpuid(0).eax;
+            let l1 = __cpuid(1);
+            let l7 = if max_leaf >= 7 {
+                __cpuid_count(7, 0).ebx
+            } else {
+                0
+            };
+            let ext = __cpuid(0x8000_0001).ecx;
+            let bit = |word: u32, b: u32| word & (1 << b) != 0;
+            // AVX state must also be enabled by the operating system (XCR0 bits 1 and 2).
+            let os_avx = bit(l1.ecx, 27) && (_xgetbv(0) & 0b110) == 0b110;
+            let need = |wanted: bool, present: bool| !wanted || present;
+            need(cfg!(target_feature = "avx"), bit(l1.ecx, 28) && os_avx)
+                && need(cfg!(target_feature = "avx2"), bit(l7, 5) && os_avx)
+                && need(cfg!(target_feature = "fma"), bit(l1.ecx, 12) && os_avx)
+                && need(cfg!(target_feature = "f16c"), bit(l1.ecx, 29))
+                && need(cfg!(target_feature = "movbe"), bit(l1.ecx, 22))
+                && need(cfg!(target_feature = "bmi1"), bit(l7, 3))
+                && need(cfg!(target_feature = "bmi2"), bit(l7, 8))
+                && need(cfg!(target_feature = "lzcnt"), bit(ext, 5))
+        };
+        if !ok {
+            let _ = rustix::io::write(
+                // SAFETY: file descriptor 2 is standard error for the whole process.
+                unsafe { rustix::fd::BorrowedFd::borrow_raw(2) },
+                b"error: this processor lacks instructions this build of magg uses (it was built \
+                  for x86-64-v3: AVX2, FMA, BMI2). Build it for this machine instead: \
+                  RUSTFLAGS=\"-C target-cpu=native\" cargo build --release\n",
+            );
+            std::process::exit(1);
+        }
+    }
+}
+
+/// Puts [`cpu::check_at_start`] into the binary's start-up code (`.init_array`), so that it
+/// runs before `main` and before any code compiled for the wider instruction set.
+#[macro_export]
+macro_rules! check_cpu_at_start {
+    () => {
+        #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+        #[used]
+        #[unsafe(link_section = ".init_array")]
+        static CHECK_CPU_AT_START: extern "C" fn() = $crate::cpu::check_at_start;
+    };
 }

@@ -20,6 +20,25 @@ fn render_with_no_scene_writes_the_demo_image() {
     assert_eq!((img.width(), img.height()), (64, 48));
 }
 
+/// The README's first command on a fresh clone: `cargo run` builds `magg-host` alone, so a
+/// render that spawns its nodes must need no other executable (they run the host's own).
+#[test]
+fn a_lone_host_executable_spawns_its_own_nodes() {
+    let dir = scratch("lone-host");
+    let exe = dir.join("magg-host");
+    std::fs::copy(env!("CARGO_BIN_EXE_magg-host"), &exe).unwrap();
+    let out = dir.join("magg.png");
+    let o = run(std::process::Command::new(&exe)
+        .current_dir(&dir)
+        .env("MAGG_LOG", "warn")
+        .args([
+            "render", "--spawn", "tiny", "--width", "32", "--height", "24", "--spp", "2", "-o",
+        ])
+        .arg(&out));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(out.exists());
+}
+
 #[test]
 fn stats_file_reports_the_work() {
     let dir = scratch("stats");

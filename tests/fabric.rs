@@ -17,18 +17,7 @@ use fabric::{Delivery, Topology, Via};
 use host::cluster::{Cluster, ClusterConfig, ClusterMode, bind, start, start_on};
 use protocol::{Frame, Message, NodeId, Secret};
 
-fn bin_dir() -> String {
-    Path::new(env!("CARGO_BIN_EXE_magg-fork-node"))
-        .parent()
-        .unwrap()
-        .display()
-        .to_string()
-}
-
 fn config(topology: &str, mode: ClusterMode) -> ClusterConfig {
-    // SAFETY: tests in this file set the same value; nothing reads it concurrently in a way
-    // that could observe a torn write.
-    unsafe { std::env::set_var("MAGG_BIN_DIR", bin_dir()) };
     ClusterConfig {
         mode,
         topology: Topology::resolve(topology).unwrap(),
@@ -36,6 +25,7 @@ fn config(topology: &str, mode: ClusterMode) -> ClusterConfig {
         cluster_id: "magg".into(),
         join_timeout: Duration::from_secs(120),
         node_log: "error".into(),
+        node_program: env!("CARGO_BIN_EXE_magg-host").into(),
     }
 }
 
@@ -169,10 +159,13 @@ fn is_zombie(pid: u32) -> bool {
 fn start_nodes(t: &Topology, addr: &str, secret: &str) -> Vec<std::process::Child> {
     let (f, r) = t.counts();
     let mut v = Vec::new();
-    for (bin, n) in [("magg-fork-node", f), ("magg-render-node", r)] {
+    for (bin, n) in [
+        (env!("CARGO_BIN_EXE_magg-fork-node"), f),
+        (env!("CARGO_BIN_EXE_magg-render-node"), r),
+    ] {
         for _ in 0..n {
             v.push(
-                Command::new(Path::new(&bin_dir()).join(bin))
+                Command::new(bin)
                     .args(["--join", addr, "--listen", "127.0.0.1:0", "--log", "error"])
                     .env("MAGG_SECRET", secret)
                     .spawn()
@@ -191,7 +184,7 @@ async fn wrong_secret_and_wrong_version_are_refused() {
     let addr = listener.local_addr().unwrap().to_string();
 
     // An impostor with the wrong secret: refused, with a message saying why.
-    let impostor = Command::new(Path::new(&bin_dir()).join("magg-render-node"))
+    let impostor = Command::new(env!("CARGO_BIN_EXE_magg-render-node"))
         .args([
             "--join",
             &addr,
@@ -217,6 +210,7 @@ async fn wrong_secret_and_wrong_version_are_refused() {
                 node: None,
                 kind: protocol::ConnectionKind::Control,
             },
+            build: protocol::BUILD_ID.into(),
         };
         let f = Frame::new(0, 0, &hello, Box::new([]));
         let mut bytes = f.header.encode().to_vec();

@@ -388,29 +388,43 @@ fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
     let o = join(SECRET);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("full"), "{}", stderr(&o));
-    // Another protocol version, by hand.
-    let mut s = std::net::TcpStream::connect(&addr).unwrap();
-    let hello = protocol::Message::Hello {
-        version: 99,
-        cluster_id: "magg".into(),
-        nonce: [7; 32],
-        identity: protocol::Identity {
-            role: protocol::Role::Render,
-            node: None,
-            kind: protocol::ConnectionKind::Control,
-        },
+    // Another protocol version, and another build of this version, by hand.
+    let refusal = |version: u32, build: &str| {
+        let mut s = std::net::TcpStream::connect(&addr).unwrap();
+        let hello = protocol::Message::Hello {
+            version,
+            cluster_id: "magg".into(),
+            nonce: [7; 32],
+            identity: protocol::Identity {
+                role: protocol::Role::Render,
+                node: None,
+                kind: protocol::ConnectionKind::Control,
+            },
+            build: build.into(),
+        };
+        let f = protocol::Frame::new(0, 0, &hello, Box::new([]));
+        let mut bytes = f.header.encode().to_vec();
+        bytes.extend_from_slice(&f.meta);
+        s.write_all(&bytes).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let mut reply = Vec::new();
+        let _ = s.read_to_end(&mut reply);
+        String::from_utf8_lossy(&reply).into_owned()
     };
-    let f = protocol::Frame::new(0, 0, &hello, Box::new([]));
-    let mut bytes = f.header.encode().to_vec();
-    bytes.extend_from_slice(&f.meta);
-    s.write_all(&bytes).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    let mut reply = Vec::new();
-    let _ = s.read_to_end(&mut reply);
-    let text = String::from_utf8_lossy(&reply);
+    let text = refusal(99, protocol::BUILD_ID);
     assert!(
         text.contains("version"),
         "the refusal should say why: {text:?}"
+    );
+    let text = refusal(protocol::PROTOCOL_VERSION, "magg 0.0.9 src 000000000000");
+    assert!(
+        text.contains("same build") && text.contains(protocol::BUILD_ID),
+        "the refusal should name both builds: {text:?}"
+    );
+    assert!(
+        c.host.wait_for("same build", Duration::from_secs(10)).is_some(),
+        "the host should log the refusal: {}",
+        c.host.log()
     );
 
     let code = c.host.wait_exit(Duration::from_secs(120));
@@ -484,8 +498,9 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
     let render_child = children_of(host.pid())
         .into_iter()
         .find(|&p| {
+            // A spawning host runs its own executable as each node: `magg-host render-node`.
             std::fs::read(format!("/proc/{p}/cmdline"))
-                .map(|c| String::from_utf8_lossy(&c).contains("magg-render-node"))
+                .map(|c| c.split(|&b| b == 0).nth(1) == Some(b"render-node".as_slice()))
                 .unwrap_or(false)
         })
         .expect("a render node child");

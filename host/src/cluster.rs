@@ -1,7 +1,7 @@
 //! Starting a cluster from the host: spawning it locally, or waiting for nodes started by
 //! hand (or by containers) to join, then stopping it cleanly.
 
-use std::time::Duration;
+use std::{path::PathBuf, time::Duration};
 
 use fabric::{
     Topology,
@@ -30,6 +30,9 @@ pub struct ClusterConfig {
     pub join_timeout: Duration,
     /// Log level of spawned nodes.
     pub node_log: String,
+    /// The executable spawned nodes run (in their role's subcommand): the host's own, so
+    /// that every process of a local cluster is the same build.
+    pub node_program: PathBuf,
 }
 
 impl ClusterConfig {
@@ -57,6 +60,8 @@ pub enum StartError {
     },
     #[error("{0}")]
     Spawn(std::io::Error),
+    #[error("{0}")]
+    NodeExited(String),
     #[error("the cluster did not form: {0}")]
     Form(#[from] fabric::cluster::ClusterError),
 }
@@ -95,11 +100,12 @@ pub async fn start_on(
         addr: "?".into(),
         source,
     })?;
-    let local = match config.mode {
+    let mut local = match config.mode {
         ClusterMode::Spawn => {
             let (f, r) = config.topology.counts();
             Some(
                 LocalCluster::spawn(
+                    &config.node_program,
                     f,
                     r,
                     &bound.to_string(),
@@ -118,7 +124,7 @@ pub async fn start_on(
             None
         }
     };
-    let formed = form(
+    let forming = form(
         listener,
         config.topology.clone(),
         config.secret.clone(),
@@ -126,8 +132,19 @@ pub async fn start_on(
         config.join_timeout,
         progress,
         matches!(config.mode, ClusterMode::Listen(_)),
-    )
-    .await?;
+    );
+    tokio::pin!(forming);
+    // A spawned node that cannot run exits at once; say so then, not at the join timeout.
+    let formed = loop {
+        tokio::select! {
+            formed = &mut forming => break formed?,
+            _ = tokio::time::sleep(Duration::from_millis(100)) => {
+                if let Some(why) = local.as_mut().and_then(LocalCluster::exited_early) {
+                    return Err(StartError::NodeExited(why));
+                }
+            }
+        }
+    };
     Ok(Cluster { formed, local })
 }
 
@@ -163,5 +180,47 @@ impl Cluster {
                 true
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Instant;
+
+    use super::*;
+
+    fn spawning(program: &str) -> ClusterConfig {
+        ClusterConfig {
+            mode: ClusterMode::Spawn,
+            topology: Topology::resolve("tiny").unwrap(),
+            secret: Secret::new("spawn test secret").unwrap(),
+            cluster_id: "magg".into(),
+            join_timeout: Duration::from_secs(60),
+            node_log: "error".into(),
+            node_program: program.into(),
+        }
+    }
+
+    async fn start_error(config: &ClusterConfig) -> String {
+        match start(config, &|_, _| {}).await {
+            Ok(_) => panic!("the cluster should not form"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[tokio::test]
+    async fn a_missing_node_executable_names_the_fix() {
+        let err = start_error(&spawning("/nonexistent/magg-host")).await;
+        assert!(err.contains("/nonexistent/magg-host"), "{err}");
+        assert!(err.contains("cargo build --release"), "{err}");
+    }
+
+    #[tokio::test]
+    async fn a_node_executable_that_cannot_run_is_reported_at_once() {
+        let began = Instant::now();
+        let err = start_error(&spawning("/bin/false")).await;
+        assert!(err.contains("exited before the cluster formed"), "{err}");
+        assert!(err.contains("cargo build --release"), "{err}");
+        assert!(began.elapsed() < Duration::from_secs(30), "{err}");
     }
 }

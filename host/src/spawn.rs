@@ -3,7 +3,7 @@
 //! when the cluster is dropped.
 
 use std::{
-    path::PathBuf,
+    path::{Path, PathBuf},
     process::{Child, Command, Stdio},
     time::{Duration, Instant},
 };
@@ -11,28 +11,28 @@ use std::{
 use protocol::{Role, Secret};
 
 pub struct LocalCluster {
+    program: PathBuf,
     children: Vec<(Role, Child)>,
 }
 
-/// Where the node binaries are: `MAGG_BIN_DIR` if set, else beside this executable.
-pub fn node_binary(role: Role) -> PathBuf {
-    let name = match role {
-        Role::Fork => "magg-fork-node",
-        _ => "magg-render-node",
-    };
-    if let Some(dir) = std::env::var_os("MAGG_BIN_DIR") {
-        return PathBuf::from(dir).join(name);
+/// The subcommand that runs a `magg-host` executable in a node role.
+fn role_subcommand(role: Role) -> &'static str {
+    match role {
+        Role::Fork => "fork-node",
+        _ => "render-node",
     }
-    let exe = std::env::current_exe().unwrap_or_default();
-    exe.parent()
-        .map(|d| d.join(name))
-        .unwrap_or_else(|| PathBuf::from(name))
 }
 
+/// What to do when the node executable cannot run, for error messages.
+const REBUILD: &str = "rebuild it (`cargo build --release`) and run the host again";
+
 impl LocalCluster {
-    /// Starts `forks` fork nodes and `renders` render nodes that join `host`. The secret goes
-    /// by environment, never on the command line (where `ps` would show it).
+    /// Starts `forks` fork nodes and `renders` render nodes that join `host`, each one
+    /// `program` (the host's own executable, so that every process is the same build) in its
+    /// role. The secret goes by environment, never on the command line (where `ps` would
+    /// show it).
     pub fn spawn(
+        program: &Path,
         forks: usize,
         renders: usize,
         host: &str,
@@ -41,15 +41,16 @@ impl LocalCluster {
         log: &str,
     ) -> std::io::Result<LocalCluster> {
         let mut cluster = LocalCluster {
+            program: program.to_path_buf(),
             children: Vec::new(),
         };
         let me = std::process::id().to_string();
         for role in
             std::iter::repeat_n(Role::Fork, forks).chain(std::iter::repeat_n(Role::Render, renders))
         {
-            let bin = node_binary(role);
-            let child = Command::new(&bin)
+            let child = Command::new(program)
                 .args([
+                    role_subcommand(role),
                     "--join",
                     host,
                     "--listen",
@@ -67,11 +68,36 @@ impl LocalCluster {
                 .stderr(Stdio::inherit())
                 .spawn()
                 .map_err(|e| {
-                    std::io::Error::new(e.kind(), format!("starting {}: {e}", bin.display()))
+                    std::io::Error::new(
+                        e.kind(),
+                        format!(
+                            "cannot start {} `{}`: {e}; {REBUILD}",
+                            program.display(),
+                            role_subcommand(role),
+                        ),
+                    )
                 })?;
             cluster.children.push((role, child));
         }
         Ok(cluster)
+    }
+
+    /// The first child that has already exited, as a sentence that says what to do, if any.
+    /// A node exits before the cluster has formed only when it cannot run at all.
+    pub fn exited_early(&mut self) -> Option<String> {
+        for (role, c) in &mut self.children {
+            if let Ok(Some(status)) = c.try_wait() {
+                return Some(format!(
+                    "a spawned {role} (`{} {}`, pid {}) exited before the cluster formed ({status}; \
+                     its own error, if any, is above); if the executable is damaged or was \
+                     replaced, {REBUILD}",
+                    self.program.display(),
+                    role_subcommand(*role),
+                    c.id()
+                ));
+            }
+        }
+        None
     }
 
     pub fn pids(&self) -> Vec<u32> {

@@ -2,9 +2,9 @@
 //! that they know the cluster secret, without sending it.
 //!
 //! ```text
-//! caller -> listener  Hello     { version, cluster id, caller nonce, identity }
+//! caller -> listener  Hello     { version, cluster id, caller nonce, identity, build }
 //! listener -> caller  Challenge { version, listener nonce, HMAC(secret, "listener" | id | nc | nl) }
-//!                     (or Refused { reason } on a wrong version or cluster id)
+//!                     (or Refused { reason } on a wrong version, cluster id or build)
 //! caller -> listener  Proof     { HMAC(secret, "caller" | id | nl | nc) }
 //! listener -> caller  Welcome   (or Refused { "wrong cluster secret" })
 //! ```
@@ -20,7 +20,7 @@ use sha2::Sha256;
 use tokio::io::{AsyncRead, AsyncWrite};
 
 use crate::{
-    PROTOCOL_VERSION,
+    BUILD_ID, PROTOCOL_VERSION,
     codec::{FrameReader, FrameWriter, ReadError},
     frame::{Frame, NodeId},
     message::{Message, Role},
@@ -93,6 +93,11 @@ pub enum HandshakeError {
     Version { theirs: u32, ours: u32 },
     #[error("peer belongs to cluster {theirs:?}, not {ours:?}")]
     Cluster { theirs: String, ours: String },
+    #[error(
+        "peer runs build {theirs:?}, this process runs {ours:?}: every process of a cluster must \
+         run the same build (rebuild, then restart the nodes with the new binaries)"
+    )]
+    Build { theirs: String, ours: String },
     #[error("peer does not know the cluster secret")]
     BadSecret,
     #[error("peer sent {0} during the handshake")]
@@ -154,6 +159,7 @@ pub async fn call<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                 cluster_id: cluster.into(),
                 nonce: nc,
                 identity,
+                build: BUILD_ID.into(),
             },
         )
         .await?;
@@ -211,7 +217,7 @@ pub async fn answer<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
 ) -> Result<Identity, HandshakeError> {
     tokio::time::timeout(HANDSHAKE_TIMEOUT, async {
         let (nc, identity) = match next(r).await? {
-            Message::Hello { version, cluster_id, nonce, identity } => {
+            Message::Hello { version, cluster_id, nonce, identity, build } => {
                 if version != PROTOCOL_VERSION {
                     let reason = format!("protocol version {version} is not supported; this node speaks {PROTOCOL_VERSION}");
                     let _ = send(w, &Message::Refused { reason }).await;
@@ -220,6 +226,14 @@ pub async fn answer<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                 if cluster_id != cluster {
                     let _ = send(w, &Message::Refused { reason: format!("this is cluster {cluster:?}, not {cluster_id:?}") }).await;
                     return Err(HandshakeError::Cluster { theirs: cluster_id, ours: cluster.into() });
+                }
+                if build != BUILD_ID {
+                    let reason = format!(
+                        "this node runs build {BUILD_ID:?} and you run {build:?}: every process of a \
+                         cluster must run the same build (rebuild, then restart the nodes with the new binaries)"
+                    );
+                    let _ = send(w, &Message::Refused { reason }).await;
+                    return Err(HandshakeError::Build { theirs: build, ours: BUILD_ID.into() });
                 }
                 (nonce, identity)
             }
@@ -316,6 +330,49 @@ mod tests {
         let (c, l) = pair(&s, &s, "one", "two").await;
         assert!(matches!(c, Err(HandshakeError::Refused(_))), "{c:?}");
         assert!(matches!(l, Err(HandshakeError::Cluster { .. })));
+    }
+
+    #[tokio::test]
+    async fn another_build_is_refused_with_the_reason() {
+        let (x, y) = tokio::io::duplex(1 << 16);
+        let (xr, xw) = tokio::io::split(x);
+        let (yr, yw) = tokio::io::split(y);
+        let s = Secret::new("correct horse battery").unwrap();
+        let listener = tokio::spawn(async move {
+            answer(
+                &mut FrameReader::new(yr),
+                &mut FrameWriter::new(yw),
+                &s,
+                "magg",
+            )
+            .await
+        });
+        let mut w = FrameWriter::new(xw);
+        let mut r = FrameReader::new(xr);
+        let other = format!("{BUILD_ID} (edited)");
+        send(
+            &mut w,
+            &Message::Hello {
+                version: PROTOCOL_VERSION,
+                cluster_id: "magg".into(),
+                nonce: [1; 32],
+                identity: ident(),
+                build: other.clone(),
+            },
+        )
+        .await
+        .unwrap();
+        match next(&mut r).await.unwrap() {
+            Message::Refused { reason } => {
+                assert!(reason.contains("same build"), "{reason}");
+                assert!(reason.contains(&other), "{reason}");
+            }
+            m => panic!("expected a refusal, got {m:?}"),
+        }
+        assert!(matches!(
+            listener.await.unwrap(),
+            Err(HandshakeError::Build { .. })
+        ));
     }
 
     #[test]

@@ -24,7 +24,7 @@
 //! The paper's packet header held mode, data size, sender and receiver; those are `mode`,
 //! `meta_len + data_len`, `sender` and `receiver` here.
 //!
-//! A connection starts with the [`handshake`]: version and cluster id, then a challenge and
+//! A connection starts with the [`handshake`]: version, cluster id and build identity, then a challenge and
 //! response proving on both sides knowledge of the cluster secret (HMAC-SHA256), before any
 //! other frame is accepted. The secret itself never crosses the wire.
 
@@ -42,4 +42,10 @@ pub use message::{
 };
 
 /// Bumped whenever the frame layout or the message set changes incompatibly.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
+
+/// What this process was built from: crate version, hashes of the workspace's sources and of
+/// the lock file, target architecture and instruction-set features (see `build.rs`). Every
+/// process of a cluster must show the same, or the handshake refuses it: processes built
+/// from different code could render different bytes for the same pixel.
+pub const BUILD_ID: &str = env!("MAGG_BUILD_ID");

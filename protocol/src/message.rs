@@ -62,6 +62,8 @@ pub enum Message {
         cluster_id: String,
         nonce: [u8; 32],
         identity: Identity,
+        /// The caller's [`crate::BUILD_ID`].
+        build: String,
     },
     Challenge {
         version: u32,

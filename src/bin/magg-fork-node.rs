@@ -1,28 +1,25 @@
 //! `magg-fork-node`: the fork node role (the paper's FP). Joins a host and serves its card.
+//! For clusters started by hand and containers; a spawning host runs its own executable in
+//! this role instead (`magg-host fork-node`), so that every process is the same build.
 
-use magg::{NodeArgs, init_logging};
+use magg::NodeArgs;
+
+magg::check_cpu_at_start!();
 
 #[derive(clap::Parser)]
-#[command(
-    name = "magg-fork-node",
-    version,
-    about = "magg fork node: a card's shared memory and its render nodes' demand data"
-)]
+#[command(name = "magg-fork-node", version = protocol::BUILD_ID, about = "magg fork node: a card's shared memory and its render nodes' demand data")]
 struct Cli {
     #[command(flatten)]
     node: NodeArgs,
+    /// Log level filter.
+    #[arg(long, env = "MAGG_LOG", default_value = "info")]
+    log: String,
 }
 
 fn main() {
     let cli = magg::parse_args::<Cli>();
-    init_logging(&cli.node.log);
-    cli.node.arm_parent_death();
-    let result = (|| -> anyhow::Result<()> {
-        let join = cli.node.join_config(protocol::Role::Fork)?;
-        magg::run_node(fork_node::run(fork_node::Config { join }))?;
-        Ok(())
-    })();
-    if let Err(e) = result {
+    magg::init_logging(&cli.log);
+    if let Err(e) = magg::node_main(protocol::Role::Fork, &cli.node) {
         eprintln!("error: {}", magg::report(&e));
         std::process::exit(1);
     }

@@ -6,10 +6,12 @@ use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use renderer::{IntegratorKind, PrepareOptions, RenderSettings};
 
+magg::check_cpu_at_start!();
+
 #[derive(Parser)]
 #[command(
     name = "magg-host",
-    version,
+    version = protocol::BUILD_ID,
     about = "magg: a distributed ray tracer (the host role)"
 )]
 struct Cli {
@@ -33,6 +35,12 @@ enum Command {
     Gallery(GalleryArgs),
     /// Compare an image with a reference: relative MSE and channel means.
     Compare { image: PathBuf, reference: PathBuf },
+    /// Run as a fork node (what a spawning host starts; the flags of magg-fork-node).
+    #[command(hide = true)]
+    ForkNode(magg::NodeArgs),
+    /// Run as a render node (what a spawning host starts; the flags of magg-render-node).
+    #[command(hide = true)]
+    RenderNode(magg::NodeArgs),
 }
 
 #[derive(Subcommand)]
@@ -125,6 +133,8 @@ impl ClusterArgs {
             cluster_id: self.cluster_id.clone(),
             join_timeout: std::time::Duration::from_secs(self.join_timeout),
             node_log: self.node_log.clone(),
+            node_program: std::env::current_exe()
+                .context("finding this executable, which spawned nodes run")?,
         })
     }
 }
@@ -654,6 +664,8 @@ fn main() {
             Ok(())
         })(),
         Command::Experiment(cmd) => experiment(cmd),
+        Command::ForkNode(node) => magg::node_main(protocol::Role::Fork, &node),
+        Command::RenderNode(node) => magg::node_main(protocol::Role::Render, &node),
         Command::Compare { image, reference } => (|| {
             let a = scene_io::read_image(&image)
                 .with_context(|| format!("reading {}", image.display()))?;

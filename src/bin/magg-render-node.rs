@@ -1,28 +1,25 @@
 //! `magg-render-node`: the render node role (the paper's NP). Joins a host and renders subscreens.
+//! For clusters started by hand and containers; a spawning host runs its own executable in
+//! this role instead (`magg-host render-node`), so that every process is the same build.
 
-use magg::{NodeArgs, init_logging};
+use magg::NodeArgs;
+
+magg::check_cpu_at_start!();
 
 #[derive(clap::Parser)]
-#[command(
-    name = "magg-render-node",
-    version,
-    about = "magg render node: renders subscreens, fetching shape data on demand"
-)]
+#[command(name = "magg-render-node", version = protocol::BUILD_ID, about = "magg render node: renders subscreens, fetching shape data on demand")]
 struct Cli {
     #[command(flatten)]
     node: NodeArgs,
+    /// Log level filter.
+    #[arg(long, env = "MAGG_LOG", default_value = "info")]
+    log: String,
 }
 
 fn main() {
     let cli = magg::parse_args::<Cli>();
-    init_logging(&cli.node.log);
-    cli.node.arm_parent_death();
-    let result = (|| -> anyhow::Result<()> {
-        let join = cli.node.join_config(protocol::Role::Render)?;
-        magg::run_node(render_node::run(render_node::Config { join }))?;
-        Ok(())
-    })();
-    if let Err(e) = result {
+    magg::init_logging(&cli.log);
+    if let Err(e) = magg::node_main(protocol::Role::Render, &cli.node) {
         eprintln!("error: {}", magg::report(&e));
         std::process::exit(1);
     }
