@@ -2,6 +2,7 @@
 //! node takes. The roles themselves live in the `host`, `fork-node` and `render-node` crates.
 
 pub mod fuzzing;
+pub mod raybench;
 
 use std::path::PathBuf;
 

@@ -15,7 +15,7 @@ use std::{
 
 use fabric::{Fabric, Route};
 use protocol::{DataId, Message, NodeId, Transfer};
-use renderer::{DataError, SceneData, chunk::Chunk, texture::Tile};
+use renderer::{DataError, SceneData, chunk::Chunk, scene::ChunkRules, texture::Tile};
 
 #[derive(Clone)]
 enum Item {
@@ -57,6 +57,8 @@ pub struct Source {
 }
 
 pub struct DemandCache {
+    /// What a chunk must agree with before it is used.
+    rules: ChunkRules,
     chunks: Vec<Slot>,
     tiles: Vec<Slot>,
     clock: AtomicU64,
@@ -78,10 +80,16 @@ thread_local! {
 }
 
 impl DemandCache {
-    /// A cache for a scene of `chunks` chunks and `tiles` texture tiles.
-    pub fn new(chunks: usize, tiles: usize, budget: u64, source: Option<Source>) -> DemandCache {
+    /// A cache for a scene whose chunks follow `rules`, with `tiles` texture tiles.
+    pub fn new(
+        rules: ChunkRules,
+        tiles: usize,
+        budget: u64,
+        source: Option<Source>,
+    ) -> DemandCache {
         DemandCache {
-            chunks: (0..chunks).map(|_| Slot::default()).collect(),
+            chunks: (0..rules.len()).map(|_| Slot::default()).collect(),
+            rules,
             tiles: (0..tiles).map(|_| Slot::default()).collect(),
             clock: AtomicU64::new(1),
             used: AtomicU64::new(0),
@@ -104,7 +112,7 @@ impl DemandCache {
 
     /// Puts data in without fetching (batch transfer), validated like fetched data.
     pub fn preload(&self, id: DataId, words: Box<[u32]>) -> Result<(), DataError> {
-        let item = validate(id, words)?;
+        let item = validate(&self.rules, id, words)?;
         let bytes = item_bytes(&item);
         self.insert(id, item, bytes, false)?;
         Ok(())
@@ -205,7 +213,7 @@ impl DemandCache {
             Transfer::Dma => self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed),
             Transfer::Serial => self.stats.bytes_serial.fetch_add(bytes, Ordering::Relaxed),
         };
-        let item = validate(id, reply.data)?;
+        let item = validate(&self.rules, id, reply.data)?;
         let size = item_bytes(&item);
         if size > self.budget {
             return Err(DataError::Fetch(format!(
@@ -224,17 +232,12 @@ fn item_bytes(item: &Item) -> u64 {
     }
 }
 
-fn validate(id: DataId, words: Box<[u32]>) -> Result<Item, DataError> {
+fn validate(rules: &ChunkRules, id: DataId, words: Box<[u32]>) -> Result<Item, DataError> {
     match id {
         DataId::Chunk(c) => {
             let chunk = Chunk::from_words(words)
                 .map_err(|e| DataError::Corrupt(format!("chunk {c}: {e}")))?;
-            if chunk.header().chunk_id != c {
-                return Err(DataError::Corrupt(format!(
-                    "asked for chunk {c}, got chunk {}",
-                    chunk.header().chunk_id
-                )));
-            }
+            rules.check(c, &chunk).map_err(DataError::Corrupt)?;
             Ok(Item::Chunk(Arc::new(chunk)))
         }
         DataId::Tile(_) => Ok(Item::Tile(Arc::new(Tile::from_words(words)?))),
@@ -278,6 +281,10 @@ mod tests {
         build_chunk(&m, &all, id, 0).unwrap().words().into()
     }
 
+    fn rules(chunks: usize) -> ChunkRules {
+        ChunkRules::new(vec![(0, 4); chunks], 0)
+    }
+
     fn glam_vec(x: f32, y: f32) -> glam::Vec3 {
         glam::Vec3::new(x, y, 0.0)
     }
@@ -285,7 +292,7 @@ mod tests {
     #[test]
     fn evicts_least_recently_used_within_budget() {
         let size = chunk(0, 4).len() as u64 * 4;
-        let cache = DemandCache::new(3, 0, size * 2, None);
+        let cache = DemandCache::new(rules(3), 0, size * 2, None);
         cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
         cache.tick();
         cache.preload(DataId::Chunk(1), chunk(1, 4)).unwrap();
@@ -293,7 +300,7 @@ mod tests {
         assert!(cache.chunk(0).is_ok());
         cache.tick();
         // A third, inserted with eviction, pushes out chunk 1 (used least recently).
-        let item = validate(DataId::Chunk(2), chunk(2, 4)).unwrap();
+        let item = validate(&rules(3), DataId::Chunk(2), chunk(2, 4)).unwrap();
         cache.insert(DataId::Chunk(2), item, size, true).unwrap();
         assert!(cache.used_bytes() <= size * 2);
         assert!(cache.chunk(0).is_ok());
@@ -303,10 +310,16 @@ mod tests {
 
     #[test]
     fn wrong_or_corrupt_data_is_refused() {
-        assert!(validate(DataId::Chunk(5), chunk(4, 2)).is_err());
+        let rules = ChunkRules::new(vec![(0, 2); 6], 0);
+        assert!(validate(&rules, DataId::Chunk(5), chunk(5, 2)).is_ok());
+        assert!(validate(&rules, DataId::Chunk(5), chunk(4, 2)).is_err());
+        // The right id, but not what the scene says chunk 5 is.
+        assert!(validate(&rules, DataId::Chunk(5), chunk(5, 3)).is_err());
+        let other = ChunkRules::new(vec![(1, 2); 6], 0);
+        assert!(validate(&other, DataId::Chunk(5), chunk(5, 2)).is_err());
         let mut w = chunk(5, 2).to_vec();
         w.truncate(w.len() - 1);
-        assert!(validate(DataId::Chunk(5), w.into_boxed_slice()).is_err());
-        assert!(validate(DataId::Tile(0), vec![0u32; 7].into_boxed_slice()).is_err());
+        assert!(validate(&rules, DataId::Chunk(5), w.into_boxed_slice()).is_err());
+        assert!(validate(&rules, DataId::Tile(0), vec![0u32; 7].into_boxed_slice()).is_err());
     }
 }

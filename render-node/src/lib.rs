@@ -248,7 +248,7 @@ fn maybe_start(
                 return;
             }
             DemandCache::new(
-                scene.chunks.len(),
+                scene.chunk_rules(),
                 scene.tile_count as usize,
                 job.cache_bytes,
                 Some(source),
@@ -259,7 +259,7 @@ fn maybe_start(
                 return;
             }
             let cache = DemandCache::new(
-                scene.chunks.len(),
+                scene.chunk_rules(),
                 scene.tile_count as usize,
                 u64::MAX,
                 None,

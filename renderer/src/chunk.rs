@@ -6,7 +6,7 @@
 //! | section            | type             | count        |
 //! |--------------------|------------------|--------------|
 //! | header             | [`ChunkHeader`]  | 1            |
-//! | BVH nodes          | `CwBvhNode` (80 B) | node_count |
+//! | tree nodes         | [`WideNode`] (8 x u32) | node_count |
 //! | triangle positions | `[f32; 9]`       | tri_count    |
 //! | triangle vertices  | `[u32; 3]`       | tri_count    |
 //! | normals            | `[f32; 3]`       | vertex_count |
@@ -22,16 +22,17 @@
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec2, Vec3, Vec3A, Vec4};
-use obvhs::{aabb::Aabb, cwbvh::node::CwBvhNode};
+use obvhs::aabb::Aabb;
 
 use crate::{
-    bvh::{self, NodeError, Visit},
+    accel::{Bvh8, Closest},
+    bvh::{self, NodeError, Visit, WideNode},
     ray::RayQuery,
-    triangle::{self, TriHit},
+    triangle::TriHit,
 };
 
 pub const CHUNK_MAGIC: u32 = u32::from_le_bytes(*b"MCHK");
-pub const CHUNK_VERSION: u32 = 1;
+pub const CHUNK_VERSION: u32 = 2;
 
 pub const FLAG_UV0: u32 = 1;
 pub const FLAG_UV1: u32 = 2;
@@ -62,7 +63,7 @@ pub struct ChunkHeader {
 }
 
 const HEADER_WORDS: usize = size_of::<ChunkHeader>() / 4;
-const NODE_WORDS: usize = size_of::<CwBvhNode>() / 4;
+const NODE_WORDS: usize = size_of::<WideNode>() / 4;
 
 /// Word offsets of each section, derived from the header.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -126,7 +127,7 @@ pub enum ChunkError {
     BadFlags(u32),
     #[error("chunk sections need {expected} bytes, the block has {actual}")]
     BadLength { expected: usize, actual: usize },
-    #[error("chunk BVH: {0}")]
+    #[error("chunk tree: {0}")]
     Nodes(#[from] NodeError),
     #[error("chunk triangle {tri} uses vertex {vertex}, but the chunk has {count}")]
     VertexOutOfRange { tri: usize, vertex: u32, count: u32 },
@@ -134,11 +135,20 @@ pub enum ChunkError {
     NonFinite,
 }
 
-/// One chunk, in its wire layout, in 4-byte aligned memory.
-#[derive(Clone, PartialEq)]
+/// One chunk: its wire layout in 4-byte aligned memory, and the walking form of its tree
+/// ([`Bvh8`]) transcoded from it once it was known to be valid.
+#[derive(Clone)]
 pub struct Chunk {
     words: Box<[u32]>,
     layout: Layout,
+    accel: Bvh8,
+}
+
+impl PartialEq for Chunk {
+    /// The walking form is derived from the words, so the words decide.
+    fn eq(&self, o: &Chunk) -> bool {
+        self.words == o.words
+    }
 }
 
 impl std::fmt::Debug for Chunk {
@@ -177,7 +187,11 @@ impl Chunk {
                 actual: words.len() * 4,
             });
         }
-        let chunk = Chunk { words, layout };
+        let chunk = Chunk {
+            words,
+            layout,
+            accel: Bvh8::default(),
+        };
         let floats: &[f32] = bytemuck::cast_slice(&chunk.words[layout.positions..layout.vertices]);
         let attr: &[f32] = bytemuck::cast_slice(&chunk.words[layout.normals..layout.end]);
         let bounds = header.bounds_min.iter().chain(header.bounds_max.iter());
@@ -200,8 +214,20 @@ impl Chunk {
                 }
             }
         }
-        bvh::validate_nodes(chunk.nodes(), header.tri_count as usize)?;
-        Ok(chunk)
+        bvh::validate_tree(chunk.nodes(), header.tri_count as usize)?;
+        Ok(chunk.transcoded())
+    }
+
+    /// Builds the walking form; only ever called on valid words.
+    fn transcoded(mut self) -> Chunk {
+        self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+        self
+    }
+
+    /// The tree in the form rays walk.
+    #[inline(always)]
+    pub fn accel(&self) -> &Bvh8 {
+        &self.accel
     }
 
     /// Bytes of a chunk as received (any alignment): copied once into aligned words.
@@ -232,7 +258,7 @@ impl Chunk {
         bytemuck::from_bytes(bytemuck::cast_slice(&self.words[..HEADER_WORDS]))
     }
 
-    pub fn nodes(&self) -> &[CwBvhNode] {
+    pub fn nodes(&self) -> &[WideNode] {
         bytemuck::cast_slice(&self.words[self.layout.nodes..self.layout.positions])
     }
 
@@ -252,7 +278,8 @@ impl Chunk {
         self.header().tri_count
     }
 
-    /// Closest hit in (0, tmax) within this chunk.
+    /// Closest hit in (0, tmax) within this chunk; `tmax` shrinks to the hit. Equal distances
+    /// go to the lower triangle index.
     #[inline]
     pub fn intersect(&self, q: &RayQuery, tmax: &mut f32) -> Option<(u32, TriHit)> {
         self.intersect_with(q, tmax, |_, _| true)
@@ -265,39 +292,20 @@ impl Chunk {
         &self,
         q: &RayQuery,
         tmax: &mut f32,
-        mut accept: A,
+        accept: A,
     ) -> Option<(u32, TriHit)> {
-        let positions = self.tri_positions();
-        let mut best = None;
-        bvh::traverse(self.nodes(), q, tmax, |slot, tmax| {
-            if let Some(p) = positions.get(slot as usize) {
-                let (v0, v1, v2) = tri_points(p);
-                if let Some(hit) = triangle::intersect(q, v0, v1, v2, *tmax)
-                    && accept(slot, &hit)
-                {
-                    *tmax = hit.t;
-                    best = Some((slot, hit));
-                }
-            }
-            Visit::Continue
-        });
-        best
+        let mut best = Closest::new(*tmax);
+        if !self.accel.closest(q, 0, &mut best, accept) {
+            return None;
+        }
+        *tmax = best.t;
+        best.hit.map(|h| (best.tri, h))
     }
 
     /// Every triangle hit in (0, tmax), in no particular order, until `f` says stop.
     #[inline]
-    pub fn for_each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
-        let positions = self.tri_positions();
-        let mut t = tmax;
-        bvh::traverse(self.nodes(), q, &mut t, |slot, tmax| {
-            if let Some(p) = positions.get(slot as usize) {
-                let (v0, v1, v2) = tri_points(p);
-                if let Some(hit) = triangle::intersect(q, v0, v1, v2, *tmax) {
-                    return f(slot, hit);
-                }
-            }
-            Visit::Continue
-        });
+    pub fn for_each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, f: F) {
+        self.accel.each_hit(q, tmax, f);
     }
 
     /// Surface attributes of triangle `tri` at barycentrics `hit`.
@@ -496,15 +504,11 @@ pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -
             Aabb::new(a.min(b).min(c), a.max(b).max(c))
         })
         .collect();
-    let wide = bvh::build(&boxes);
-    if bvh::validate_nodes(&wide.nodes, wide.primitive_indices.len()).is_err() {
+    let wide = bvh::build(&boxes, bvh::MAX_LEAF);
+    if bvh::validate_tree(&wide.nodes, wide.order.len()).is_err() {
         return None;
     }
-    let ordered: Vec<u32> = wide
-        .primitive_indices
-        .iter()
-        .map(|&i| tris[i as usize])
-        .collect();
+    let ordered: Vec<u32> = wide.order.iter().map(|&i| tris[i as usize]).collect();
 
     // Chunk-local vertices, first use first.
     let mut remap = std::collections::HashMap::<u32, u32>::new();
@@ -588,10 +592,12 @@ pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -
     }
     let layout = Layout::of(&header)?;
     debug_assert_eq!(layout.end, words.len());
-    Some(Chunk {
+    let chunk = Chunk {
         words: words.into_boxed_slice(),
         layout,
-    })
+        accel: Bvh8::default(),
+    };
+    Some(chunk.transcoded())
 }
 
 impl Chunk {
@@ -611,7 +617,7 @@ impl Chunk {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ray::Ray;
+    use crate::{ray::Ray, triangle};
 
     fn grid_mesh(n: usize) -> MeshData {
         let mut m = MeshData::default();

@@ -5,6 +5,7 @@
 //! renderer reads through the [`source::SceneData`] trait, so the same code renders from
 //! memory in one process and from a demand-filled cache on a render node.
 
+pub mod accel;
 pub mod bsdf;
 pub mod bvh;
 pub mod camera;
@@ -18,6 +19,7 @@ pub mod ray;
 pub mod render;
 pub mod sampler;
 pub mod scene;
+pub mod simd;
 pub mod source;
 pub mod texture;
 pub mod trace;

@@ -3,6 +3,8 @@
 
 use glam::{Vec3, Vec3A};
 
+use crate::simd::F32x8;
+
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
     pub origin: Vec3A,
@@ -42,30 +44,38 @@ fn safe_recip(x: f32) -> f32 {
     }
 }
 
-/// A ray with everything the traversal needs precomputed.
+/// A ray with everything the walk and the triangle tests need, computed once per ray.
+///
+/// The axis and plane indices are private so that they keep the bounds [`RayQuery::new`]
+/// gives them (an axis below 3, a plane below 6), which lets the kernels index with them
+/// unchecked.
 #[derive(Clone, Copy, Debug)]
 pub struct RayQuery {
     pub origin: Vec3A,
     pub dir: Vec3A,
     pub inv_dir: Vec3A,
-    /// Octant of the direction, in the encoding the wide BVH uses to order children.
-    pub oct_inv4: u32,
-    /// Watertight test: the axis of largest |dir| and the other two, and the shear.
-    pub kx: usize,
-    pub ky: usize,
-    pub kz: usize,
+    /// Watertight test: the shear of the axes (x, y) onto the axis of largest |dir| (z).
     pub sx: f32,
     pub sy: f32,
     pub sz: f32,
+    /// Box test ([`crate::accel`]), in lanes: per axis the inverse direction, and
+    /// `-origin * inv_dir` less and plus the bound of its own rounding (the offsets of the
+    /// near and far plane distances).
+    pub inv8: [F32x8; 3],
+    pub near_off8: [F32x8; 3],
+    pub far_off8: [F32x8; 3],
+    /// The watertight test's axes: x, y, then z (the axis of largest |dir|).
+    axes: [usize; 3],
+    /// Per axis, which of a node's six plane arrays the ray meets first and last.
+    near_plane: [usize; 3],
+    far_plane: [usize; 3],
 }
 
 impl RayQuery {
     pub fn new(ray: &Ray) -> RayQuery {
         let d = ray.dir;
-        let inv_dir = Vec3A::new(safe_recip(d.x), safe_recip(d.y), safe_recip(d.z));
-        let oct_inv4 = (if d.x < 0.0 { 0 } else { 0x0404_0404 })
-            | (if d.y < 0.0 { 0 } else { 0x0202_0202 })
-            | (if d.z < 0.0 { 0 } else { 0x0101_0101 });
+        let dir = d.to_array();
+        let inv = dir.map(safe_recip);
         let abs = d.abs();
         let kz = if abs.x > abs.y {
             if abs.x > abs.z { 0 } else { 2 }
@@ -74,23 +84,41 @@ impl RayQuery {
         } else {
             2
         };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        if d[kz] < 0.0 {
+        let (mut kx, mut ky) = [(1, 2), (2, 0), (0, 1)][kz];
+        if dir[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
-        let sz = 1.0 / d[kz];
+        let sz = 1.0 / dir[kz];
+        let origin = ray.origin.to_array();
+        let r = [0, 1, 2].map(|k| origin[k] * inv[k]);
+        // `r` and the sums below each round by half an ulp of their size.
+        let slack = r.map(|r| r.abs() * (3.0 * f32::EPSILON * 0.5));
+        let positive = inv.map(|i| usize::from(i >= 0.0));
         RayQuery {
             origin: ray.origin,
             dir: d,
-            inv_dir,
-            oct_inv4,
-            kx,
-            ky,
-            kz,
-            sx: d[kx] * sz,
-            sy: d[ky] * sz,
+            inv_dir: Vec3A::from_array(inv),
+            sx: dir[kx] * sz,
+            sy: dir[ky] * sz,
             sz,
+            inv8: inv.map(F32x8::splat),
+            near_off8: [0, 1, 2].map(|k| F32x8::splat(-r[k] - slack[k])),
+            far_off8: [0, 1, 2].map(|k| F32x8::splat(-r[k] + slack[k])),
+            axes: [kx, ky, kz],
+            near_plane: [0, 2, 4].map(|p| p + 1 - positive[p / 2]),
+            far_plane: [0, 2, 4].map(|p| p + positive[p / 2]),
         }
+    }
+
+    /// The watertight test's axes: x, y, then z (the axis of largest |dir|); each below 3.
+    #[inline(always)]
+    pub fn axes(&self) -> [usize; 3] {
+        self.axes
+    }
+
+    /// Per axis, the plane arrays of a node the ray meets first and last; each below 6.
+    #[inline(always)]
+    pub fn planes(&self) -> ([usize; 3], [usize; 3]) {
+        (self.near_plane, self.far_plane)
     }
 }

@@ -7,10 +7,11 @@
 //! (the chunks and texture tiles, which render nodes fetch on demand).
 
 use glam::{Vec2, Vec3};
-use obvhs::{aabb::Aabb, cwbvh::node::CwBvhNode};
+use obvhs::aabb::Aabb;
 use serde::{Deserialize, Serialize};
 
 use crate::{
+    accel::Bvh8,
     bvh,
     camera::Camera,
     chunk::{self, Chunk, MeshData},
@@ -134,15 +135,108 @@ pub struct ChunkInfo {
     pub bounds_max: Vec3,
     pub tri_count: u32,
     pub byte_len: u32,
+    /// The material of every triangle of the chunk.
+    pub material: u32,
 }
 
-/// The top-level tree over chunk bounds.
+/// What a chunk received from elsewhere must agree with, from the header: its id, material,
+/// triangle count and lights, so that shading it cannot index outside the header's lists.
+#[derive(Clone, Debug, Default)]
+pub struct ChunkRules {
+    /// (material, triangles) by chunk id.
+    chunks: Vec<(u32, u32)>,
+    lights: u64,
+}
+
+impl ChunkRules {
+    /// Rules for chunks of these (material, triangle count) and a light list this long.
+    pub fn new(chunks: Vec<(u32, u32)>, lights: usize) -> ChunkRules {
+        ChunkRules {
+            chunks,
+            lights: lights as u64,
+        }
+    }
+
+    /// How many chunks the scene has.
+    pub fn len(&self) -> usize {
+        self.chunks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.chunks.is_empty()
+    }
+
+    /// Whether `chunk` may be used as chunk `id` of this scene.
+    pub fn check(&self, id: u32, chunk: &Chunk) -> Result<(), String> {
+        let h = chunk.header();
+        let Some(&(material, tris)) = self.chunks.get(id as usize) else {
+            return Err(format!("chunk {id} is not in the scene"));
+        };
+        if h.chunk_id != id {
+            return Err(format!("asked for chunk {id}, got chunk {}", h.chunk_id));
+        }
+        if (h.material, h.tri_count) != (material, tris) {
+            return Err(format!(
+                "chunk {id} has material {} and {} triangles; the scene says {material} and {tris}",
+                h.material, h.tri_count
+            ));
+        }
+        if h.light_base != crate::chunk::NO_LIGHT
+            && h.light_base as u64 + h.tri_count as u64 > self.lights
+        {
+            return Err(format!(
+                "chunk {id}'s triangles are lights {}.. of {}",
+                h.light_base, self.lights
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The top-level tree over chunk bounds: its compact form (sent with the header) and, once
+/// the header is known to be valid, the form rays walk, each leaf one chunk.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 pub struct Tlas {
     #[serde(with = "pod_vec")]
-    pub nodes: Vec<CwBvhNode>,
+    pub nodes: Vec<bvh::WideNode>,
     /// Leaf slot to chunk id.
     pub slots: Vec<u32>,
+    #[serde(skip)]
+    accel: WalkForm,
+}
+
+/// The walking form of the top-level tree, built once from a prepared or validated header.
+/// It is derived data: it never decides equality, and it is not sent.
+#[derive(Clone, Debug, Default)]
+struct WalkForm(std::sync::OnceLock<Bvh8>);
+
+impl PartialEq for WalkForm {
+    fn eq(&self, _: &WalkForm) -> bool {
+        true
+    }
+}
+
+impl Tlas {
+    /// The tree rays walk; empty until the header was prepared here or validated.
+    #[inline(always)]
+    pub fn accel(&self) -> &Bvh8 {
+        static NONE: Bvh8 = Bvh8 {
+            nodes: Vec::new(),
+            leaves: Vec::new(),
+        };
+        self.accel.0.get().unwrap_or(&NONE)
+    }
+
+    fn build_accel(&self, chunks: &[ChunkInfo]) {
+        let bounds: Vec<([f32; 3], [f32; 3])> = chunks
+            .iter()
+            .map(|c| (c.bounds_min.to_array(), c.bounds_max.to_array()))
+            .collect();
+        let _ = self
+            .accel
+            .0
+            .set(Bvh8::for_chunks(&self.nodes, &self.slots, &bounds));
+    }
 }
 
 /// Everything about a scene except its shape and texture data.
@@ -167,6 +261,17 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// What chunks from elsewhere must agree with (see [`ChunkRules`]).
+    pub fn chunk_rules(&self) -> ChunkRules {
+        ChunkRules::new(
+            self.chunks
+                .iter()
+                .map(|c| (c.material, c.tri_count))
+                .collect(),
+            self.lights.len(),
+        )
+    }
+
     pub fn radius(&self) -> f32 {
         ((self.bounds_max - self.bounds_min).length() * 0.5).max(0.0)
     }
@@ -180,7 +285,8 @@ impl Scene {
     }
 
     /// Checks every index and number of a header received from elsewhere, so that
-    /// rendering with it cannot index out of bounds.
+    /// rendering with it cannot index out of bounds; then builds the form of the top-level
+    /// tree that rays walk (a header is used only after this).
     pub fn validate(&self) -> Result<(), SceneError> {
         let bad = |what: String| Err(SceneError::Invalid(what));
         let finite3 = |v: Vec3| v.is_finite();
@@ -251,8 +357,23 @@ impl Scene {
         {
             return bad("top-level tree points at a chunk that does not exist".into());
         }
-        bvh::validate_nodes(&self.tlas.nodes, self.tlas.slots.len())
+        bvh::validate_tree(&self.tlas.nodes, self.tlas.slots.len())
             .map_err(|e| SceneError::Invalid(format!("top-level tree: {e}")))?;
+        if !self
+            .chunks
+            .iter()
+            .all(|c| c.bounds_min.is_finite() && c.bounds_max.is_finite())
+        {
+            return bad("a chunk's bounds are not finite".into());
+        }
+        if let Some(i) = self
+            .chunks
+            .iter()
+            .position(|c| c.material as usize >= self.materials.len())
+        {
+            return bad(format!("chunk {i} uses a material that does not exist"));
+        }
+        self.tlas.build_accel(&self.chunks);
         Ok(())
     }
 }
@@ -399,11 +520,13 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
                 bounds_max: Vec3::from(h.bounds_max),
                 tri_count: h.tri_count,
                 byte_len: c.byte_len() as u32,
+                material: h.material,
             }
         })
         .collect();
     let boxes: Vec<Aabb> = chunks.iter().map(|c| c.bounds()).collect();
-    let top = bvh::build(&boxes);
+    // One chunk a leaf: a ray tests each chunk's own box before it touches the chunk.
+    let top = bvh::build(&boxes, 1);
 
     let data = MemoryData { chunks, tiles };
     let mut scene = Scene {
@@ -417,13 +540,15 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
         chunks: chunk_infos,
         tlas: Tlas {
             nodes: top.nodes,
-            slots: top.primitive_indices,
+            slots: top.order,
+            accel: WalkForm::default(),
         },
         bounds_min: bmin,
         bounds_max: bmax,
         shape_bytes: data.shape_bytes(),
         tile_count: data.tiles.len() as u32,
     };
+    scene.tlas.build_accel(&scene.chunks);
     let radius = scene.radius();
     let weights: Vec<f64> = scene
         .lights
@@ -467,7 +592,7 @@ impl Scene {
     }
 }
 
-/// Serde for `Vec<T: Pod>` as one byte string (CWBVH nodes have no serde of their own).
+/// Serde for `Vec<T: Pod>` as one byte string (tree nodes, compactly).
 mod pod_vec {
     use bytemuck::Pod;
     use serde::{Deserialize, Deserializer, Serializer, de::Error};

@@ -6,7 +6,8 @@ use std::cell::Cell;
 use glam::Vec3;
 
 use crate::{
-    bvh::{self, Visit},
+    accel::{self, Closest},
+    bvh::Visit,
     chunk::Chunk,
     material::{self, AlphaMode},
     ray::{Ray, RayQuery},
@@ -86,9 +87,17 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         }
     }
 
-    /// How the surfaces of a chunk take rays.
-    fn surface_kind(&self, chunk: &Chunk) -> SurfaceKind {
-        let m = &self.scene.materials[chunk.header().material as usize];
+    /// How the surfaces of a chunk take rays (from the header, which is at hand, and whose
+    /// material indices were checked; a chunk must agree with it, see `ChunkRules`).
+    fn surface_kind(&self, chunk_id: u32) -> SurfaceKind {
+        let Some(m) = self
+            .scene
+            .chunks
+            .get(chunk_id as usize)
+            .and_then(|c| self.scene.materials.get(c.material as usize))
+        else {
+            return SurfaceKind::Solid;
+        };
         // glTF: a single-sided material is invisible from behind (back faces are culled),
         // except where light must cross it, as into and out of a transmissive volume.
         let cull = !m.double_sided && m.transmission <= 0.0;
@@ -136,7 +145,9 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         })
     }
 
-    /// The nearest surface the ray meets in (0, tmax).
+    /// The nearest surface the ray meets in (0, tmax). Of surfaces at exactly the same
+    /// distance, the one of the lowest (chunk, triangle) index, whatever order the walk met
+    /// them in.
     pub fn closest(
         &self,
         ray: &Ray,
@@ -144,49 +155,57 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
         let q = RayQuery::new(ray);
         let mut tmax = ray.tmax;
-        let mut best: Option<Hit<D::ChunkRef<'a>>> = None;
+        let mut best = Closest::new(ray.tmax);
+        let mut best_chunk: Option<D::ChunkRef<'a>> = None;
         let mut error = None;
-        let tlas = &self.scene.tlas;
-        bvh::traverse(&tlas.nodes, &q, &mut tmax, |slot, tmax| {
-            let chunk_id = tlas.slots[slot as usize];
-            let chunk = match self.data.chunk(chunk_id) {
-                Ok(c) => c,
-                Err(e) => {
-                    error = Some(e);
-                    return Visit::Stop;
-                }
-            };
-            let kind = self.surface_kind(&chunk);
-            let found = if kind == SurfaceKind::Solid {
-                chunk.intersect(&q, tmax)
-            } else {
-                chunk.intersect_with(&q, tmax, |tri, hit| {
-                    match self.passes_through(&chunk, kind, &q, tri, hit, key) {
-                        Ok(pass) => !pass,
-                        Err(e) => {
-                            error = Some(e);
-                            false
-                        }
+        accel::walk::<true>(
+            &self.scene.tlas.accel().nodes,
+            &q,
+            &mut tmax,
+            |chunk_id, tmax| {
+                let chunk = match self.data.chunk(chunk_id) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        error = Some(e);
+                        return Visit::Stop;
                     }
-                })
-            };
-            if let Some((tri, tri_hit)) = found {
-                best = Some(Hit {
-                    chunk,
-                    tri,
-                    tri_hit,
-                });
-            }
-            if error.is_some() {
-                Visit::Stop
-            } else {
-                Visit::Continue
-            }
-        });
-        match error {
-            Some(e) => Err(e),
-            None => Ok(best),
+                };
+                let kind = self.surface_kind(chunk_id);
+                let improved = if kind == SurfaceKind::Solid {
+                    chunk.accel().closest(&q, chunk_id, &mut best, |_, _| true)
+                } else {
+                    chunk.accel().closest(&q, chunk_id, &mut best, |tri, hit| {
+                        match self.passes_through(&chunk, kind, &q, tri, hit, key) {
+                            Ok(pass) => !pass,
+                            Err(e) => {
+                                error = Some(e);
+                                false
+                            }
+                        }
+                    })
+                };
+                if improved {
+                    *tmax = best.t;
+                    best_chunk = Some(chunk);
+                }
+                if error.is_some() {
+                    Visit::Stop
+                } else {
+                    Visit::Continue
+                }
+            },
+        );
+        if let Some(e) = error {
+            return Err(e);
         }
+        Ok(match (best_chunk, best.hit) {
+            (Some(chunk), Some(tri_hit)) => Some(Hit {
+                chunk,
+                tri: best.tri,
+                tri_hit,
+            }),
+            _ => None,
+        })
     }
 
     /// Whether anything blocks the ray within (0, tmax).
@@ -196,39 +215,43 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         let mut tmax = ray.tmax;
         let mut blocked = false;
         let mut error = None;
-        let tlas = &self.scene.tlas;
-        bvh::traverse(&tlas.nodes, &q, &mut tmax, |slot, tmax| {
-            let chunk = match self.data.chunk(tlas.slots[slot as usize]) {
-                Ok(c) => c,
-                Err(e) => {
-                    error = Some(e);
-                    return Visit::Stop;
-                }
-            };
-            let kind = self.surface_kind(&chunk);
-            chunk.for_each_hit(&q, *tmax, |tri, hit| {
-                if kind == SurfaceKind::Solid {
-                    blocked = true;
-                    return Visit::Stop;
-                }
-                match self.passes_through(&chunk, kind, &q, tri, &hit, key) {
-                    Ok(true) => Visit::Continue,
-                    Ok(false) => {
-                        blocked = true;
-                        Visit::Stop
-                    }
+        accel::walk::<false>(
+            &self.scene.tlas.accel().nodes,
+            &q,
+            &mut tmax,
+            |chunk_id, tmax| {
+                let chunk = match self.data.chunk(chunk_id) {
+                    Ok(c) => c,
                     Err(e) => {
                         error = Some(e);
-                        Visit::Stop
+                        return Visit::Stop;
                     }
+                };
+                let kind = self.surface_kind(chunk_id);
+                chunk.accel().each_hit(&q, *tmax, |tri, hit| {
+                    if kind == SurfaceKind::Solid {
+                        blocked = true;
+                        return Visit::Stop;
+                    }
+                    match self.passes_through(&chunk, kind, &q, tri, &hit, key) {
+                        Ok(true) => Visit::Continue,
+                        Ok(false) => {
+                            blocked = true;
+                            Visit::Stop
+                        }
+                        Err(e) => {
+                            error = Some(e);
+                            Visit::Stop
+                        }
+                    }
+                });
+                if blocked || error.is_some() {
+                    Visit::Stop
+                } else {
+                    Visit::Continue
                 }
-            });
-            if blocked || error.is_some() {
-                Visit::Stop
-            } else {
-                Visit::Continue
-            }
-        });
+            },
+        );
         match error {
             Some(e) => Err(e),
             None => Ok(blocked),

@@ -22,17 +22,31 @@ pub struct TriHit {
 /// material decision, not a geometric one.
 #[inline(always)]
 pub fn intersect(q: &RayQuery, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmax: f32) -> Option<TriHit> {
-    let (kx, ky, kz) = (q.kx, q.ky, q.kz);
+    intersect_upto(q, v0, v1, v2, tmax).filter(|h| h.t < tmax)
+}
+
+/// Returns the hit with `0 < t <= tmax`, if any: the closest-hit kernel admits a hit at
+/// exactly the best distance so far, to break the tie by triangle index.
+///
+/// The operations are those of the four-lane kernel ([`crate::accel`]), in the same order
+/// and with the same fused multiply-adds, so the two give the same bits: the kernel filters
+/// four triangles at once and this function makes the final decision for a candidate. The
+/// shear of each vertex may be fused (it is the same computation for a vertex in every
+/// triangle that shares it); the edge functions must not be, or the two triangles of an
+/// edge would no longer compute exactly opposite values for it.
+#[inline(always)]
+pub fn intersect_upto(q: &RayQuery, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmax: f32) -> Option<TriHit> {
+    let [kx, ky, kz] = q.axes();
     let a = v0 - q.origin;
     let b = v1 - q.origin;
     let c = v2 - q.origin;
 
-    let ax = a[kx] - q.sx * a[kz];
-    let ay = a[ky] - q.sy * a[kz];
-    let bx = b[kx] - q.sx * b[kz];
-    let by = b[ky] - q.sy * b[kz];
-    let cx = c[kx] - q.sx * c[kz];
-    let cy = c[ky] - q.sy * c[kz];
+    let ax = (-q.sx).mul_add(a[kz], a[kx]);
+    let ay = (-q.sy).mul_add(a[kz], a[ky]);
+    let bx = (-q.sx).mul_add(b[kz], b[kx]);
+    let by = (-q.sy).mul_add(b[kz], b[ky]);
+    let cx = (-q.sx).mul_add(c[kz], c[kx]);
+    let cy = (-q.sy).mul_add(c[kz], c[ky]);
 
     let mut u = cx * by - cy * bx;
     let mut v = ax * cy - ay * cx;
@@ -58,19 +72,19 @@ pub fn intersect(q: &RayQuery, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmax: f32) -> Op
     let az = q.sz * a[kz];
     let bz = q.sz * b[kz];
     let cz = q.sz * c[kz];
-    let t_scaled = u * az + v * bz + w * cz;
+    let t_scaled = u.mul_add(az, v.mul_add(bz, w * cz));
 
-    // Compare t against (0, tmax) without dividing, in the sign of det.
+    // Compare t against (0, tmax] without dividing, in the sign of det.
     let det_sign = det.to_bits() & 0x8000_0000;
     let t_signed = f32::from_bits(t_scaled.to_bits() ^ det_sign);
     let det_abs = det.abs();
-    if t_signed <= 0.0 || t_signed >= tmax * det_abs {
+    if !(t_signed > 0.0) || t_signed > tmax * det_abs {
         return None;
     }
 
     let inv_det = 1.0 / det;
     let t = t_scaled * inv_det;
-    if !(t > 0.0 && t < tmax) {
+    if !(t > 0.0 && t <= tmax) {
         return None;
     }
 

@@ -243,7 +243,7 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
         }
     }
     let shift = if lo.is_finite() && hi.is_finite() {
-        (lo + hi) * 0.5
+        DVec3::from_array([0, 1, 2].map(|k| exact_shift(lo[k], hi[k])))
     } else {
         DVec3::ZERO
     };
@@ -1244,6 +1244,30 @@ fn generate_tangents(d: &mut PrimitiveData, set: u32) {
 
 /// Transforms a primitive into centred world space; returns it and how many triangles were
 /// dropped as degenerate.
+/// How far to move the scene along one axis, given its extent `lo..hi` there: towards its
+/// centre, when the scene lies far enough from the origin for f32 to lose precision there
+/// (entirely on one side, at least its own width away), else not at all. The shift is a
+/// multiple of the f32 spacing at the largest coordinate, which makes moving a point of the
+/// scene given in f32 exact (each point ends up no farther from the origin than it was): a
+/// mesh placed without rotation or scale keeps every bit of its shape, and a ray made from
+/// the file's own numbers keeps every bit of its position relative to it.
+fn exact_shift(lo: f64, hi: f64) -> f64 {
+    let far = (lo > 0.0 && hi <= 2.0 * lo) || (hi < 0.0 && lo >= 2.0 * hi);
+    if !far {
+        return 0.0;
+    }
+    let m = lo.abs().max(hi.abs());
+    let mut m32 = m as f32;
+    if (m32 as f64) < m {
+        m32 = m32.next_up();
+    }
+    if !m32.is_finite() {
+        return (lo + hi) * 0.5;
+    }
+    let spacing = (m32.next_up() - m32) as f64;
+    ((lo + hi) * 0.5 / spacing).round() * spacing
+}
+
 fn place_primitive(p: &PlacedPrimitive, shift: DVec3) -> (MeshData, usize) {
     let d = &p.data;
     let linear = DMat3::from_mat4(p.world);

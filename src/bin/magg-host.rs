@@ -191,8 +191,41 @@ struct GalleryArgs {
     columns: u32,
 }
 
+#[derive(Subcommand)]
+enum BenchCmd {
+    /// Cast the rays of a file into a mesh on one thread, as render does: rays per second
+    /// and each ray's hit (formats in the README; bench/peers/embree.py uses it).
+    Rays(RaysArgs),
+}
+
 #[derive(Args)]
+struct RaysArgs {
+    /// A glTF or GLB file (its triangles; materials and cameras do not matter).
+    mesh: PathBuf,
+    /// Rays: per ray six little-endian f32, origin then unit direction.
+    rays: PathBuf,
+    /// Write each ray's hit distance here (little-endian f32, +inf on a miss).
+    #[arg(long)]
+    hits: Option<PathBuf>,
+    /// Measurements of each kind (the best and the median are printed).
+    #[arg(long, default_value_t = 5)]
+    repeat: usize,
+    /// Any hit instead of the closest (shadow rays: stop at the first opaque surface).
+    #[arg(long)]
+    any_hit: bool,
+    #[arg(long, default_value_t = 4096)]
+    chunk_triangles: usize,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// Without a subcommand: the renderer core's figures (build, rays, samples per second).
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    #[command(subcommand)]
+    what: Option<BenchCmd>,
     /// A glTF file to use as the big mesh (default: a procedural mesh).
     #[arg(long)]
     mesh: Option<PathBuf>,
@@ -435,7 +468,47 @@ fn render(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+fn bench_rays(a: RaysArgs) -> Result<()> {
+    let cfg = magg::raybench::RaysConfig {
+        mesh: a.mesh,
+        rays: a.rays,
+        hits: a.hits,
+        repeat: a.repeat,
+        any_hit: a.any_hit,
+        chunk_triangles: a.chunk_triangles,
+    };
+    let r = magg::raybench::run(&cfg, &|m| eprintln!("{m}"))?;
+    let kind = if r.any_hit { "any hit" } else { "closest hit" };
+    println!(
+        "{} triangles, {} chunks: build best {:.3} s, median {:.3} s",
+        r.triangles, r.chunks, r.build_seconds, r.build_seconds_median
+    );
+    println!(
+        "{} rays ({kind}), {} hit ({:.2}%)",
+        r.rays,
+        r.hits,
+        100.0 * r.hits as f64 / r.rays.max(1) as f64
+    );
+    for (name, rate) in [
+        ("in-process", &r.in_process),
+        ("render node cache", &r.cache),
+    ] {
+        println!(
+            "{name}: best {:.2} M rays/s, median {:.2} M rays/s (of {} repeats)",
+            rate.best_mrays, rate.median_mrays, rate.repeats
+        );
+    }
+    if let Some(p) = a.json {
+        std::fs::write(&p, serde_json::to_vec_pretty(&r)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}
+
 fn bench(args: BenchArgs) -> Result<()> {
+    if let Some(BenchCmd::Rays(a)) = args.what {
+        return bench_rays(a);
+    }
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));

@@ -1,0 +1,793 @@
+//! The form of a tree this processor walks fastest, and the ray-casting kernels that walk it.
+//!
+//! Chunks travel in a compact, position-independent form (the tree's shape in 32-byte nodes,
+//! triangles in leaf order; [`crate::bvh`]): good for the wire and for caches. Once a chunk
+//! has been validated it is transcoded, once, into [`Bvh8`]: nodes of eight children whose
+//! boxes are plain `f32` planes (one array per plane, so one 8-lane fused multiply-add per
+//! plane tests all eight children) and leaves of up to four triangles stored lane by lane
+//! ([`Tri4`], tested together). The boxes are computed from the triangles themselves, so
+//! they are exact and need no trust in the sender. The top-level tree over chunks is
+//! transcoded the same way, each of its leaves one chunk with that chunk's bounds, so a ray
+//! tests a chunk's box before touching it.
+//!
+//! Robustness: a box test must never reject a box that holds something the ray hits, at any
+//! scale or distance from the origin. A plane distance is computed as
+//! `plane * inv_dir + offset` with `offset = -origin * inv_dir`; the rounding of `offset` is
+//! bounded by a slack folded into it per axis (see [`RayQuery`]), and what remains is
+//! relative to the distance itself, which widening the far distance by a few ulps covers.
+//! Triangles are tested by the watertight algorithm ([`triangle`]) four at a time with the
+//! same operations as the scalar test, which then confirms the nearest candidate and applies
+//! the rounding bound on its distance.
+//!
+//! Closest hits are unique: equal distances are decided by (chunk, triangle) index, so the
+//! answer does not depend on the order in which the walk meets the triangles.
+
+use std::mem::MaybeUninit;
+
+use crate::{
+    bvh::{self, Child, MAX_DEPTH, Visit, WideNode},
+    math::gamma,
+    ray::RayQuery,
+    simd::{F32x4, F32x8},
+    triangle::{self, TriHit},
+};
+
+/// A child reference with this bit set is a leaf; the other bits index the leaf (a [`Tri4`]
+/// block in a chunk, a chunk in the top-level tree).
+pub const LEAF: u32 = 1 << 31;
+
+/// Far distances are widened by this factor (six units in the last place): the relative
+/// rounding of a plane distance and of the near distance it is compared with.
+const WIDEN: f32 = 1.0 + 3.0 * f32::EPSILON;
+
+/// Entries the walk's stack can need: at most seven pushes per level of a valid tree.
+const STACK: usize = 8 * MAX_DEPTH;
+
+/// Eight children: their boxes as planes (min x, max x, min y, max y, min z, max z; an empty
+/// slot has +inf minima and -inf maxima, which no ray enters) and references.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(64))]
+pub struct Node8 {
+    pub planes: [[f32; 8]; 6],
+    pub child: [u32; 8],
+}
+
+impl Node8 {
+    const EMPTY: Node8 = Node8 {
+        planes: [
+            [f32::INFINITY; 8],
+            [f32::NEG_INFINITY; 8],
+            [f32::INFINITY; 8],
+            [f32::NEG_INFINITY; 8],
+            [f32::INFINITY; 8],
+            [f32::NEG_INFINITY; 8],
+        ],
+        child: [0; 8],
+    };
+
+    fn set(&mut self, slot: usize, child: u32, b: &Bounds) {
+        self.child[slot] = child;
+        for k in 0..3 {
+            self.planes[2 * k][slot] = b.min[k];
+            self.planes[2 * k + 1][slot] = b.max[k];
+        }
+    }
+
+    /// The union of the children's boxes.
+    fn bounds(&self) -> Bounds {
+        let mut b = Bounds::EMPTY;
+        for k in 0..3 {
+            for s in 0..8 {
+                b.min[k] = b.min[k].min(self.planes[2 * k][s]);
+                b.max[k] = b.max[k].max(self.planes[2 * k + 1][s]);
+            }
+        }
+        b
+    }
+}
+
+/// Up to four triangles, vertex coordinates lane by lane: `p[3 * vertex + axis][lane]`.
+/// Unused lanes repeat lane 0, so they can only find the hit lane 0 finds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C, align(16))]
+pub struct Tri4 {
+    pub p: [[f32; 4]; 9],
+    /// The chunk's triangle index (leaf order) of each lane.
+    pub id: [u32; 4],
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Bounds {
+    min: [f32; 3],
+    max: [f32; 3],
+}
+
+impl Bounds {
+    const EMPTY: Bounds = Bounds {
+        min: [f32::INFINITY; 3],
+        max: [f32::NEG_INFINITY; 3],
+    };
+
+    fn add_point(&mut self, p: [f32; 3]) {
+        for k in 0..3 {
+            self.min[k] = self.min[k].min(p[k]);
+            self.max[k] = self.max[k].max(p[k]);
+        }
+    }
+}
+
+/// A tree in the walking form: node 0 is the root (none when the tree is empty).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Bvh8 {
+    pub nodes: Vec<Node8>,
+    pub leaves: Vec<Tri4>,
+}
+
+/// Transcodes a tree in its wire form. `leaf(first, count, nodes)` makes the reference and
+/// box of a leaf child (and may add nodes of its own). Nodes keep their indices. Input that
+/// is not a tree (which validation refuses before this is called) gives a tree missing the
+/// parts that were not, never a panic or a loop.
+fn transcode(
+    wire: &[WideNode],
+    mut leaf: impl FnMut(u32, u32, &mut Vec<Node8>) -> Option<(u32, Bounds)>,
+) -> Vec<Node8> {
+    if wire.is_empty() {
+        return Vec::new();
+    }
+    // Pre-order, so that its reverse meets every child before its parent.
+    let mut order = Vec::with_capacity(wire.len());
+    let mut seen = vec![false; wire.len()];
+    let mut work = vec![0usize];
+    while let Some(i) = work.pop() {
+        if std::mem::replace(&mut seen[i], true) {
+            continue;
+        }
+        order.push(i);
+        for &r in &wire[i] {
+            if let Child::Node(c) = bvh::child(r)
+                && (c as usize) < wire.len()
+                && !seen[c as usize]
+            {
+                work.push(c as usize);
+            }
+        }
+    }
+    let mut nodes = vec![Node8::EMPTY; wire.len()];
+    let mut done = vec![false; wire.len()];
+    for &i in order.iter().rev() {
+        let mut node = Node8::EMPTY;
+        for (slot, &r) in wire[i].iter().enumerate() {
+            match bvh::child(r) {
+                Child::Node(c) if (c as usize) < wire.len() && done[c as usize] => {
+                    let b = nodes[c as usize].bounds();
+                    node.set(slot, c, &b);
+                }
+                Child::Leaf { first, count } => {
+                    if let Some((r, b)) = leaf(first, count, &mut nodes) {
+                        node.set(slot, r, &b);
+                    }
+                }
+                _ => {}
+            }
+        }
+        nodes[i] = node;
+        done[i] = true;
+    }
+    nodes
+}
+
+impl Bvh8 {
+    /// A chunk's tree, from its validated wire nodes and its triangles in leaf order.
+    pub fn for_chunk(wire: &[WideNode], positions: &[[f32; 9]]) -> Bvh8 {
+        let mut leaves = Vec::new();
+        let nodes = transcode(wire, |first, count, _| {
+            let start = first as usize;
+            let tris = positions.get(start..start + count.min(4) as usize)?;
+            let mut block = Tri4 {
+                p: [[0.0; 4]; 9],
+                id: [first; 4],
+            };
+            let mut b = Bounds::EMPTY;
+            for lane in 0..4 {
+                let t = lane.min(tris.len() - 1);
+                for (c, v) in tris[t].iter().enumerate() {
+                    block.p[c][lane] = *v;
+                }
+                block.id[lane] = first + t as u32;
+            }
+            for t in tris {
+                for v in 0..3 {
+                    b.add_point([t[3 * v], t[3 * v + 1], t[3 * v + 2]]);
+                }
+            }
+            leaves.push(block);
+            Some((LEAF | (leaves.len() - 1) as u32, b))
+        });
+        Bvh8 { nodes, leaves }
+    }
+
+    /// The top-level tree, from its validated wire nodes, the chunk of each leaf slot and
+    /// each chunk's bounds. A leaf of several chunks becomes a node of its own.
+    pub fn for_chunks(wire: &[WideNode], slots: &[u32], bounds: &[([f32; 3], [f32; 3])]) -> Bvh8 {
+        let chunk = |slot: u32| -> Option<(u32, Bounds)> {
+            let id = *slots.get(slot as usize)?;
+            let (min, max) = *bounds.get(id as usize)?;
+            Some((LEAF | id, Bounds { min, max }))
+        };
+        let nodes = transcode(wire, |first, count, nodes| {
+            if count == 1 {
+                return chunk(first);
+            }
+            let mut node = Node8::EMPTY;
+            for s in 0..count {
+                if let Some((r, b)) = chunk(first + s) {
+                    node.set(s as usize, r, &b);
+                }
+            }
+            nodes.push(node);
+            Some(((nodes.len() - 1) as u32, node.bounds()))
+        });
+        Bvh8 {
+            nodes,
+            leaves: Vec::new(),
+        }
+    }
+
+    /// Bytes this form takes in memory.
+    pub fn byte_len(&self) -> usize {
+        self.nodes.len() * size_of::<Node8>() + self.leaves.len() * size_of::<Tri4>()
+    }
+}
+
+/// Which of the eight children the ray enters within [0, tmax], and where it enters.
+/// `tmax_wide` is tmax widened by [`WIDEN`].
+#[inline(always)]
+fn test_node(q: &RayQuery, n: &Node8, tmax_wide: F32x8) -> (u32, F32x8) {
+    let (near, far) = q.planes();
+    let plane = |which: usize, axis: usize, off: &[F32x8; 3]| {
+        // SAFETY: `RayQuery::planes` are below 6, the number of plane arrays.
+        let p = unsafe { n.planes.get_unchecked(which) };
+        F32x8::load(p).mul_add(q.inv8[axis], off[axis])
+    };
+    let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
+    let tf = [0, 1, 2].map(|k| plane(far[k], k, &q.far_off8));
+    let tnear = tn[0].max(tn[1]).max(tn[2].max(F32x8::splat(0.0)));
+    let tfar = tf[0].min(tf[1]).min(tf[2]).mul(F32x8::splat(WIDEN));
+    let hit = tnear.le(tfar.min(tmax_wide));
+    (hit.bits() & 0xff, tnear)
+}
+
+/// A stack of (child, entry distance) for the walk, never initialised as a whole (it is
+/// needed once per ray and per chunk the ray enters).
+struct Stack {
+    /// Child reference in the low half, entry distance's bits in the high half: one word,
+    /// written and read whole (two narrower stores read back as one would stall the load).
+    entries: [MaybeUninit<u64>; STACK],
+    len: usize,
+}
+
+impl Stack {
+    #[inline(always)]
+    fn new() -> Stack {
+        Stack {
+            entries: [const { MaybeUninit::uninit() }; STACK],
+            len: 0,
+        }
+    }
+
+    #[inline(always)]
+    fn push(&mut self, child: u32, t: f32) {
+        // A valid tree needs fewer entries than the stack holds; an entry beyond it would
+        // only be a subtree skipped, never memory written out of bounds.
+        if let Some(e) = self.entries.get_mut(self.len) {
+            e.write(child as u64 | (t.to_bits() as u64) << 32);
+            self.len += 1;
+        }
+    }
+
+    /// Sorts the entries from `base` up by entry distance, farthest first, so that the
+    /// nearest is popped first. Distances are >= 0, so their bits order like the numbers.
+    #[inline(always)]
+    fn sort_from(&mut self, base: usize) {
+        let end = self.len.min(STACK);
+        for i in base + 1..end {
+            // SAFETY: every entry below `len` was written by `push`.
+            let e = unsafe { self.entries[i].assume_init() };
+            let mut j = i;
+            while j > base {
+                // SAFETY: as above, `base <= j - 1 < len`.
+                let prev = unsafe { self.entries[j - 1].assume_init() };
+                if prev >> 32 >= e >> 32 {
+                    break;
+                }
+                self.entries[j].write(prev);
+                j -= 1;
+            }
+            self.entries[j].write(e);
+        }
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<(u32, f32)> {
+        self.len = self.len.checked_sub(1)?;
+        // SAFETY: every entry below `len` was written by `push`.
+        let e = unsafe { self.entries[self.len].assume_init() };
+        Some((e as u32, f32::from_bits((e >> 32) as u32)))
+    }
+}
+
+/// Walks `nodes` from the root and calls `leaf(index, &mut tmax)` for every leaf whose box
+/// the ray enters within [0, tmax]. `leaf` may shorten `tmax`, which prunes what is left,
+/// or stop the walk. With `NEAREST_FIRST`, children are visited in order of entry distance
+/// and those entered beyond `tmax` are skipped (closest-hit queries); without, in slot order
+/// (any-hit queries, where order matters little and sorting costs).
+#[inline(always)]
+pub fn walk<const NEAREST_FIRST: bool>(
+    nodes: &[Node8],
+    q: &RayQuery,
+    tmax: &mut f32,
+    mut leaf: impl FnMut(u32, &mut f32) -> Visit,
+) {
+    if nodes.is_empty() {
+        return;
+    }
+    let mut stack = Stack::new();
+    let mut cur = 0u32;
+    let mut wide = *tmax * WIDEN;
+    loop {
+        if cur & LEAF == 0 {
+            let Some(node) = nodes.get(cur as usize) else {
+                return;
+            };
+            let (mask, tnear) = test_node(q, node, F32x8::splat(wide));
+            if mask != 0 {
+                let a = (mask.trailing_zeros() & 7) as usize;
+                let rest = mask & (mask - 1);
+                if rest == 0 {
+                    cur = node.child[a];
+                    continue;
+                }
+                if NEAREST_FIRST {
+                    let mut t = [0.0f32; 8];
+                    tnear.store(&mut t);
+                    let b = (rest.trailing_zeros() & 7) as usize;
+                    let more = rest & (rest - 1);
+                    if more == 0 {
+                        // Two children, the commonest case after one: no sort.
+                        if t[a] <= t[b] {
+                            stack.push(node.child[b], t[b]);
+                            cur = node.child[a];
+                        } else {
+                            stack.push(node.child[a], t[a]);
+                            cur = node.child[b];
+                        }
+                        continue;
+                    }
+                    // Three or more: onto the stack, then sorted there, nearest on top.
+                    let base = stack.len;
+                    let mut m = mask;
+                    while m != 0 {
+                        let i = (m.trailing_zeros() & 7) as usize;
+                        m &= m - 1;
+                        stack.push(node.child[i], t[i]);
+                    }
+                    stack.sort_from(base);
+                    let Some((c, _)) = stack.pop() else { return };
+                    cur = c;
+                } else {
+                    let mut m = rest;
+                    while m != 0 {
+                        let i = (m.trailing_zeros() & 7) as usize;
+                        m &= m - 1;
+                        stack.push(node.child[i], 0.0);
+                    }
+                    cur = node.child[a];
+                }
+                continue;
+            }
+        } else {
+            if leaf(cur & !LEAF, tmax) == Visit::Stop {
+                return;
+            }
+            wide = *tmax * WIDEN;
+        }
+        loop {
+            let Some((c, t)) = stack.pop() else {
+                return;
+            };
+            if !NEAREST_FIRST || t <= wide {
+                cur = c;
+                break;
+            }
+        }
+    }
+}
+
+/// What the four-lane triangle test found.
+struct Lanes {
+    /// Lanes that hit within (0, tmax], their rounding bound cleared.
+    hits: u32,
+    /// Lanes whose edge functions came out exactly zero: the scalar test (in f64) decides.
+    undecided: u32,
+    t: [f32; 4],
+    u: F32x4,
+    v: F32x4,
+    w: F32x4,
+    inv_det: F32x4,
+}
+
+impl Lanes {
+    /// The hit of `lane`, as the scalar test would report it.
+    fn hit(&self, lane: usize) -> TriHit {
+        let (mut u, mut v, mut w, mut inv) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+        self.u.store(&mut u);
+        self.v.store(&mut v);
+        self.w.store(&mut w);
+        self.inv_det.store(&mut inv);
+        TriHit {
+            t: self.t[lane],
+            b0: u[lane] * inv[lane],
+            b1: v[lane] * inv[lane],
+            b2: w[lane] * inv[lane],
+        }
+    }
+}
+
+/// Four triangles against one ray: the operations of [`triangle::intersect_upto`], in the
+/// same order, lane by lane, so each lane gives the same bits as the scalar test.
+#[inline(always)]
+fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
+    let k = q.axes();
+    let origin = q.origin.to_array();
+    let vertex = |v: usize| {
+        let rel = |axis: usize| {
+            // SAFETY: `RayQuery::axes` are below 3, so `3 * v + axis` is below 9 for v < 3.
+            let p = unsafe { b.p.get_unchecked(3 * v + axis) };
+            // SAFETY: as above, `axis` is below 3.
+            F32x4::load(p).sub(F32x4::splat(unsafe { *origin.get_unchecked(axis) }))
+        };
+        let (ax, ay, az) = (rel(k[0]), rel(k[1]), rel(k[2]));
+        (
+            F32x4::splat(q.sx).neg_mul_add(az, ax),
+            F32x4::splat(q.sy).neg_mul_add(az, ay),
+            F32x4::splat(q.sz).mul(az),
+        )
+    };
+    let (ax, ay, az) = vertex(0);
+    let (bx, by, bz) = vertex(1);
+    let (cx, cy, cz) = vertex(2);
+    let u = cx.mul(by).sub(cy.mul(bx));
+    let v = ax.mul(cy).sub(ay.mul(cx));
+    let w = bx.mul(ay).sub(by.mul(ax));
+    let zero = F32x4::zero();
+    let undecided = u.eq(zero).or(v.eq(zero)).or(w.eq(zero)).bits();
+    let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero)).bits();
+    let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero)).bits();
+    let det = u.add(v).add(w);
+    let det_abs = det.abs();
+    let det_ok = det.ne(zero).and(det_abs.lt(F32x4::splat(f32::INFINITY)));
+    let t_scaled = u.mul_add(az, v.mul_add(bz, w.mul(cz)));
+    let t_signed = t_scaled.xor_sign(det);
+    let in_range = t_signed
+        .gt(zero)
+        .and(t_signed.gt(F32x4::splat(tmax).mul(det_abs)).not());
+    let inv_det = F32x4::splat(1.0).div(det);
+    let t = t_scaled.mul(inv_det);
+    let t_ok = t.gt(zero).and(t.gt(F32x4::splat(tmax)).not());
+    // The rounding bound on t (see the scalar test), for every lane at once.
+    let max3 = |a: F32x4, b: F32x4, c: F32x4| a.abs().max(b.abs()).max(c.abs());
+    let (max_x, max_y, max_z) = (max3(ax, bx, cx), max3(ay, by, cy), max3(az, bz, cz));
+    let g = |n: i32| F32x4::splat(gamma(n));
+    let delta_z = g(3).mul(max_z);
+    let delta_x = g(5).mul(max_x.add(max_z));
+    let delta_y = g(5).mul(max_y.add(max_z));
+    let delta_e = F32x4::splat(2.0).mul(
+        g(2).mul(max_x)
+            .mul(max_y)
+            .add(delta_y.mul(max_x))
+            .add(delta_x.mul(max_y)),
+    );
+    let max_e = max3(u, v, w);
+    let delta_t = F32x4::splat(3.0)
+        .mul(
+            g(3).mul(max_e)
+                .mul(max_z)
+                .add(delta_e.mul(max_z))
+                .add(delta_z.mul(max_e)),
+        )
+        .mul(inv_det.abs());
+    let clear = t.gt(delta_t);
+    let ok = det_ok.and(in_range).and(t_ok).and(clear).bits();
+    let mut out = Lanes {
+        hits: ok & !(negative & positive) & !undecided & 0xf,
+        undecided: undecided & 0xf,
+        t: [0.0; 4],
+        u,
+        v,
+        w,
+        inv_det,
+    };
+    t.store(&mut out.t);
+    out
+}
+
+/// The closest hit so far: distance, then (chunk, triangle) to break ties. Starts at the
+/// ray's `tmax` with no hit, which only a strictly nearer hit beats.
+#[derive(Clone, Copy, Debug)]
+pub struct Closest {
+    pub t: f32,
+    pub chunk: u32,
+    pub tri: u32,
+    pub hit: Option<TriHit>,
+}
+
+impl Closest {
+    pub fn new(tmax: f32) -> Closest {
+        Closest {
+            t: tmax,
+            chunk: 0,
+            tri: 0,
+            hit: None,
+        }
+    }
+
+    /// Whether a hit at `t` on (`chunk`, `tri`) would be nearer than the best so far.
+    #[inline(always)]
+    pub fn beaten_by(&self, t: f32, chunk: u32, tri: u32) -> bool {
+        t < self.t || (t == self.t && (chunk, tri) < (self.chunk, self.tri))
+    }
+}
+
+fn lane_points(b: &Tri4, lane: usize) -> (glam::Vec3A, glam::Vec3A, glam::Vec3A) {
+    let v =
+        |i: usize| glam::Vec3A::new(b.p[3 * i][lane], b.p[3 * i + 1][lane], b.p[3 * i + 2][lane]);
+    (v(0), v(1), v(2))
+}
+
+impl Bvh8 {
+    /// Updates `best` with the closest hit in this chunk (`chunk` is its id) that `accept`
+    /// agrees to; true if it did.
+    #[inline(always)]
+    pub fn closest<A: FnMut(u32, &TriHit) -> bool>(
+        &self,
+        q: &RayQuery,
+        chunk: u32,
+        best: &mut Closest,
+        mut accept: A,
+    ) -> bool {
+        let mut found = false;
+        let mut tmax = best.t;
+        walk::<true>(&self.nodes, q, &mut tmax, |leaf, tmax| {
+            let Some(b) = self.leaves.get(leaf as usize) else {
+                return Visit::Continue;
+            };
+            let lanes = test_tri4(q, b, *tmax);
+            if lanes.hits | lanes.undecided == 0 {
+                return Visit::Continue;
+            }
+            let mut hits: [Option<TriHit>; 4] = [None; 4];
+            let mut m = lanes.hits;
+            while m != 0 {
+                let lane = m.trailing_zeros() as usize;
+                m &= m - 1;
+                hits[lane] = Some(lanes.hit(lane));
+            }
+            // Lanes the four-lane test cannot decide are decided exactly.
+            let mut z = lanes.undecided;
+            while z != 0 {
+                let lane = z.trailing_zeros() as usize;
+                z &= z - 1;
+                let (v0, v1, v2) = lane_points(b, lane);
+                hits[lane] = triangle::intersect_upto(q, v0, v1, v2, *tmax);
+            }
+            // The nearest that `accept` takes, ties to the lower triangle index.
+            loop {
+                let mut pick: Option<(usize, TriHit)> = None;
+                for (lane, h) in hits.iter().enumerate() {
+                    if let Some(h) = h
+                        && pick.is_none_or(|(p, ph)| (h.t, b.id[lane]) < (ph.t, b.id[p]))
+                    {
+                        pick = Some((lane, *h));
+                    }
+                }
+                let Some((lane, h)) = pick else { break };
+                hits[lane] = None;
+                let tri = b.id[lane];
+                if !best.beaten_by(h.t, chunk, tri) {
+                    break;
+                }
+                if accept(tri, &h) {
+                    *best = Closest {
+                        t: h.t,
+                        chunk,
+                        tri,
+                        hit: Some(h),
+                    };
+                    *tmax = h.t;
+                    found = true;
+                    break;
+                }
+            }
+            Visit::Continue
+        });
+        found
+    }
+
+    /// Calls `f` for hits in this chunk within (0, tmax), in no particular order, until it
+    /// says stop. Each triangle is reported at most once.
+    #[inline(always)]
+    pub fn each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
+        let mut t = tmax;
+        walk::<false>(&self.nodes, q, &mut t, |leaf, _| {
+            let Some(b) = self.leaves.get(leaf as usize) else {
+                return Visit::Continue;
+            };
+            let lanes = test_tri4(q, b, tmax);
+            let mut m = lanes.hits | lanes.undecided;
+            let mut reported = [u32::MAX; 4];
+            while m != 0 {
+                let lane = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let tri = b.id[lane];
+                if reported.contains(&tri) {
+                    continue;
+                }
+                reported[lane] = tri;
+                let hit = if lanes.hits & (1 << lane) != 0 {
+                    Some(lanes.hit(lane)).filter(|h| h.t < tmax)
+                } else {
+                    let (v0, v1, v2) = lane_points(b, lane);
+                    triangle::intersect(q, v0, v1, v2, tmax)
+                };
+                if let Some(h) = hit
+                    && f(tri, h) == Visit::Stop
+                {
+                    return Visit::Stop;
+                }
+            }
+            Visit::Continue
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{
+        chunk::{MeshData, build_chunk},
+        ray::Ray,
+    };
+    use glam::{Vec3, Vec3A};
+
+    /// A small deterministic generator (the tests need no statistical quality).
+    struct Lcg(u64);
+
+    impl Lcg {
+        fn next(&mut self) -> f32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 40) as f32 / (1u64 << 24) as f32
+        }
+        fn vec(&mut self, scale: f32) -> Vec3 {
+            Vec3::new(self.next(), self.next(), self.next()) * 2.0 * scale - scale
+        }
+    }
+
+    #[test]
+    fn four_lanes_give_the_bits_of_the_scalar_test() {
+        let mut r = Lcg(7);
+        let mut hits = 0;
+        for _ in 0..20_000 {
+            let mut block = Tri4 {
+                p: [[0.0; 4]; 9],
+                id: [0, 1, 2, 3],
+            };
+            let tris: Vec<[Vec3; 3]> = (0..4)
+                .map(|_| {
+                    let c = r.vec(1.0);
+                    [c + r.vec(0.5), c + r.vec(0.5), c + r.vec(0.5)]
+                })
+                .collect();
+            for (lane, t) in tris.iter().enumerate() {
+                for v in 0..3 {
+                    for k in 0..3 {
+                        block.p[3 * v + k][lane] = t[v][k];
+                    }
+                }
+            }
+            let o = r.vec(3.0);
+            let aim = tris[(r.next() * 4.0) as usize % 4];
+            let d = ((aim[0] + aim[1] + aim[2]) / 3.0 + r.vec(0.2) - o).normalize();
+            let q = RayQuery::new(&Ray::infinite(o, d));
+            let tmax = if r.next() < 0.5 {
+                f32::INFINITY
+            } else {
+                r.next() * 4.0
+            };
+            let lanes = test_tri4(&q, &block, tmax);
+            for (lane, t) in tris.iter().enumerate() {
+                let scalar = triangle::intersect_upto(
+                    &q,
+                    Vec3A::from(t[0]),
+                    Vec3A::from(t[1]),
+                    Vec3A::from(t[2]),
+                    tmax,
+                );
+                if lanes.undecided & (1 << lane) != 0 {
+                    continue;
+                }
+                let simd = (lanes.hits & (1 << lane) != 0).then(|| lanes.hit(lane));
+                let bits = |h: Option<TriHit>| h.map(|h| [h.t, h.b0, h.b1, h.b2].map(f32::to_bits));
+                assert_eq!(bits(simd), bits(scalar), "lane {lane}");
+                hits += scalar.is_some() as usize;
+            }
+        }
+        assert!(hits > 1000, "the test should meet many hits, met {hits}");
+    }
+
+    fn grid(n: u32, z: f32) -> MeshData {
+        let mut m = MeshData::default();
+        for j in 0..=n {
+            for i in 0..=n {
+                m.positions.push(Vec3::new(i as f32, j as f32, z));
+            }
+        }
+        let w = n + 1;
+        for j in 0..n {
+            for i in 0..n {
+                let a = j * w + i;
+                m.triangles.push([a, a + 1, a + w + 1]);
+                m.triangles.push([a, a + w + 1, a + w]);
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn equal_distances_go_to_the_lowest_triangle_whatever_the_walk_meets_first() {
+        // The same grid twice: every hit is a tie between two triangles.
+        let mut m = grid(12, 1.0);
+        let copy = grid(12, 1.0);
+        let base = m.positions.len() as u32;
+        m.positions.extend(copy.positions);
+        m.triangles
+            .extend(copy.triangles.iter().map(|t| t.map(|v| v + base)));
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let mut r = Lcg(3);
+        for _ in 0..500 {
+            let o = Vec3::new(r.next() * 12.0, r.next() * 12.0, 5.0);
+            let d = Vec3::new(r.next() - 0.5, r.next() - 0.5, -3.0).normalize();
+            let q = RayQuery::new(&Ray::infinite(o, d));
+            let mut tmax = f32::INFINITY;
+            let got = chunk.intersect(&q, &mut tmax);
+            let mut brute: Option<(f32, u32)> = None;
+            for (i, p) in chunk.tri_positions().iter().enumerate() {
+                let (a, b, c) = crate::chunk::tri_points(p);
+                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY)
+                    && brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j))
+                {
+                    brute = Some((h.t, i as u32));
+                }
+            }
+            assert_eq!(got.map(|(i, h)| (h.t, i)), brute);
+        }
+    }
+
+    #[test]
+    fn any_hit_reports_each_triangle_once_and_only_real_hits() {
+        let m = grid(6, 0.0);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let q = RayQuery::new(&Ray::infinite(Vec3::new(2.3, 3.7, 1.0), -Vec3::Z));
+        let mut seen = Vec::new();
+        chunk.for_each_hit(&q, f32::INFINITY, |tri, h| {
+            assert!((h.t - 1.0).abs() < 1e-6);
+            seen.push(tri);
+            Visit::Continue
+        });
+        assert_eq!(seen.len(), 1, "{seen:?}");
+    }
+}
