@@ -17,7 +17,9 @@ use sha2::{Digest, Sha256};
 
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets it"));
-    let root = manifest.parent().expect("protocol lives inside the workspace");
+    let root = manifest
+        .parent()
+        .expect("protocol lives inside the workspace");
 
     let mut packages: Vec<PathBuf> = vec![root.to_path_buf()];
     if let Ok(entries) = fs::read_dir(root) {

@@ -422,7 +422,9 @@ fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
         "the refusal should name both builds: {text:?}"
     );
     assert!(
-        c.host.wait_for("same build", Duration::from_secs(10)).is_some(),
+        c.host
+            .wait_for("same build", Duration::from_secs(10))
+            .is_some(),
         "the host should log the refusal: {}",
         c.host.log()
     );
