@@ -224,11 +224,13 @@ pub fn run(cfg: &RaysConfig, progress: &dyn Fn(&str)) -> Result<RaysReport, Rays
                 source,
             })?;
     }
+    let mut reader = cache.reader();
+    reader.refresh();
     let mut from_cache = vec![f32::INFINITY; rays.len()];
-    cast(&scene, &cache, &rays, cfg.any_hit, &mut from_cache)?;
+    cast(&scene, &reader, &rays, cfg.any_hit, &mut from_cache)?;
     let mut times = Vec::new();
     for _ in 0..repeat {
-        times.push(cast(&scene, &cache, &rays, cfg.any_hit, &mut from_cache)?);
+        times.push(cast(&scene, &reader, &rays, cfg.any_hit, &mut from_cache)?);
     }
     let cached = rate(rays.len(), times);
     if let Some(index) = (0..rays.len()).find(|&i| hits[i].to_bits() != from_cache[i].to_bits()) {

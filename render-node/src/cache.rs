@@ -1,14 +1,23 @@
 //! The shape data cache (the paper's figure 1.8): chunks and texture tiles a render node has
 //! fetched from its fork node, within a byte budget, the least recently used evicted first.
 //!
-//! It is the renderer's [`SceneData`] on a render node. A miss blocks the rendering thread
-//! while the request travels to the fork node and the data comes back (by DMA or through the
-//! mesh); the bytes received are validated once and then used in place.
+//! Rendering threads read it through a [`Reader`], the renderer's [`SceneData`] on a render
+//! node. A hit is what the renderer does most, so it costs one atomic load (the slot's
+//! pointer) and a check of the slot's recency stamp: no lock, no reference count, no clock
+//! read. That is safe because an evicted item is not freed at once: it is retired, and freed
+//! only when every reader has since announced a newer epoch (epoch-based reclamation), which
+//! a reader does between scan lines, when it holds no reference into the cache (the borrow
+//! checker sees to that: [`Reader::refresh`] takes the reader mutably).
+//!
+//! A miss blocks the rendering thread while the request travels to the fork node and the
+//! data comes back (by DMA or through the mesh); the bytes received are validated once (and
+//! the chunk transcoded for the walk) and then used in place.
 
 use std::{
+    cell::Cell,
     sync::{
-        Arc, Mutex, RwLock,
-        atomic::{AtomicU64, Ordering},
+        Arc, Mutex,
+        atomic::{AtomicPtr, AtomicU64, Ordering},
     },
     time::{Duration, Instant},
 };
@@ -17,20 +26,58 @@ use fabric::{Fabric, Route};
 use protocol::{DataId, Message, NodeId, Transfer};
 use renderer::{DataError, SceneData, chunk::Chunk, scene::ChunkRules, texture::Tile};
 
-#[derive(Clone)]
-enum Item {
-    Chunk(Arc<Chunk>),
-    Tile(Arc<Tile>),
-}
-
-/// One cache slot per chunk and per tile id (ids are dense), so a hit is a read lock and a
-/// timestamp, never a search. Eviction, on the rare miss, scans for the oldest timestamp:
-/// exact least-recently-used order without bookkeeping on the hit path.
-#[derive(Default)]
-struct Slot {
-    item: RwLock<Option<Item>>,
+/// One slot per chunk and per tile id (ids are dense), so a hit is a load, never a search.
+/// Eviction, on the rare miss, scans for the oldest stamp: least-recently-used order to the
+/// pixel, with no bookkeeping on a hit beyond the stamp.
+struct Slot<T> {
+    item: AtomicPtr<T>,
+    /// The recency clock when last used.
     last_use: AtomicU64,
     bytes: AtomicU64,
+}
+
+impl<T> Default for Slot<T> {
+    fn default() -> Self {
+        Slot {
+            item: AtomicPtr::new(std::ptr::null_mut()),
+            last_use: AtomicU64::new(0),
+            bytes: AtomicU64::new(0),
+        }
+    }
+}
+
+/// An evicted item waiting until no reader can still hold it.
+enum Retired {
+    Chunk(*mut Chunk),
+    Tile(*mut Tile),
+}
+
+// SAFETY: a retired pointer is owned by the cache alone (unlinked from its slot), and chunks
+// and tiles are themselves Send.
+unsafe impl Send for Retired {}
+
+impl Retired {
+    /// # Safety
+    /// No reader may still hold the item (its epoch has passed).
+    unsafe fn free(self) {
+        // SAFETY: the pointer came from Box::into_raw and is freed once (the caller's promise).
+        unsafe {
+            match self {
+                Retired::Chunk(p) => drop(Box::from_raw(p)),
+                Retired::Tile(p) => drop(Box::from_raw(p)),
+            }
+        }
+    }
+}
+
+/// What only the inserting thread changes, under one lock: misses are rare.
+#[derive(Default)]
+struct State {
+    /// Bytes resident in slots.
+    used: u64,
+    /// Evicted items, the epoch at which each was unlinked, and their bytes.
+    retired: Vec<(Retired, u64, u64)>,
+    retired_bytes: u64,
 }
 
 /// Counters of the cache's work.
@@ -39,6 +86,7 @@ pub struct CacheStats {
     pub hits: AtomicU64,
     pub misses: AtomicU64,
     pub evictions: AtomicU64,
+    /// Most bytes held at once, resident and evicted-but-not-yet-freed together.
     pub peak_bytes: AtomicU64,
     pub bytes_dma: AtomicU64,
     pub bytes_serial: AtomicU64,
@@ -56,15 +104,21 @@ pub struct Source {
     pub via: Transfer,
 }
 
+/// A reader that holds no reference into the cache.
+const IDLE: u64 = u64::MAX;
+
 pub struct DemandCache {
     /// What a chunk must agree with before it is used.
     rules: ChunkRules,
-    chunks: Vec<Slot>,
-    tiles: Vec<Slot>,
+    chunks: Vec<Slot<Chunk>>,
+    tiles: Vec<Slot<Tile>>,
+    /// Recency clock, advanced once per pixel by each reader.
     clock: AtomicU64,
-    /// Bytes resident; changed only under `insert_lock`.
-    used: AtomicU64,
-    insert_lock: Mutex<()>,
+    /// Reclamation epoch, advanced at every eviction.
+    epoch: AtomicU64,
+    /// The epoch each reader last announced ([`IDLE`] when it holds nothing).
+    readers: Mutex<Vec<Arc<AtomicU64>>>,
+    state: Mutex<State>,
     budget: u64,
     /// `None` in batch mode: everything is already here and nothing may be fetched.
     source: Option<Source>,
@@ -72,12 +126,6 @@ pub struct DemandCache {
 }
 
 const FETCH_TIMEOUT: Duration = Duration::from_secs(120);
-
-thread_local! {
-    /// Hits counted on this thread and not yet added to the shared counter: a hit is the
-    /// renderer's commonest operation, so it must not touch shared cache lines.
-    static LOCAL_HITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
-}
 
 impl DemandCache {
     /// A cache for a scene whose chunks follow `rules`, with `tiles` texture tiles.
@@ -92,88 +140,168 @@ impl DemandCache {
             rules,
             tiles: (0..tiles).map(|_| Slot::default()).collect(),
             clock: AtomicU64::new(1),
-            used: AtomicU64::new(0),
-            insert_lock: Mutex::new(()),
+            epoch: AtomicU64::new(1),
+            readers: Mutex::new(Vec::new()),
+            state: Mutex::new(State::default()),
             budget,
             source,
             stats: CacheStats::default(),
         }
     }
 
-    fn slot(&self, id: DataId) -> Result<&Slot, DataError> {
-        match id {
-            DataId::Chunk(c) => self.chunks.get(c as usize).ok_or(DataError::NoChunk(c)),
-            DataId::Tile(t) => self.tiles.get(t as usize).ok_or(DataError::NoTile(t)),
-            DataId::Synthetic { .. } => {
-                Err(DataError::Fetch("synthetic data is not cached".into()))
-            }
+    /// A handle for one rendering thread.
+    pub fn reader(&self) -> Reader<'_> {
+        let announced = Arc::new(AtomicU64::new(self.epoch.load(Ordering::SeqCst)));
+        self.readers
+            .lock()
+            .expect("readers lock")
+            .push(announced.clone());
+        Reader {
+            cache: self,
+            announced,
+            now: Cell::new(self.clock.load(Ordering::Relaxed)),
+            hits: Cell::new(0),
         }
     }
 
     /// Puts data in without fetching (batch transfer), validated like fetched data.
     pub fn preload(&self, id: DataId, words: Box<[u32]>) -> Result<(), DataError> {
-        let item = validate(&self.rules, id, words)?;
-        let bytes = item_bytes(&item);
-        self.insert(id, item, bytes, false)?;
+        match id {
+            DataId::Chunk(c) => {
+                let chunk = validate_chunk(&self.rules, c, words)?;
+                let bytes = chunk.byte_len() as u64;
+                self.insert(&self.chunks, c, chunk, bytes, false)?;
+            }
+            DataId::Tile(t) => {
+                let tile = Tile::from_words(words)?;
+                let bytes = tile.as_bytes().len() as u64;
+                self.insert(&self.tiles, t, tile, bytes, false)?;
+            }
+            DataId::Synthetic { .. } => {
+                return Err(DataError::Corrupt("synthetic data in the cache".into()));
+            }
+        }
         Ok(())
     }
 
+    /// Bytes resident (not counting evicted items not yet freed).
     pub fn used_bytes(&self) -> u64 {
-        self.used.load(Ordering::Relaxed)
+        self.state.lock().expect("cache lock").used
     }
 
-    /// Puts an item in its slot, first evicting the least recently used until it fits.
-    /// Returns the item now in the slot (another thread may have put it there first).
-    fn insert(&self, id: DataId, item: Item, bytes: u64, evict: bool) -> Result<Item, DataError> {
-        let _guard = self.insert_lock.lock().expect("cache lock");
-        let slot = self.slot(id)?;
-        if let Some(existing) = slot.item.read().expect("slot lock").clone() {
+    /// Puts an item in its slot, first evicting the least recently used until it fits (when
+    /// `evict`). Returns the item now in the slot (another thread may have put it there first).
+    fn insert<T: Retire>(
+        &self,
+        slots: &[Slot<T>],
+        id: u32,
+        item: T,
+        bytes: u64,
+        evict: bool,
+    ) -> Result<*mut T, DataError> {
+        let mut state = self.state.lock().expect("cache lock");
+        let slot = slots.get(id as usize).ok_or_else(|| T::missing(id))?;
+        let existing = slot.item.load(Ordering::Acquire);
+        if !existing.is_null() {
             return Ok(existing);
         }
         if evict {
-            while self.used.load(Ordering::Relaxed) + bytes > self.budget {
-                let oldest = self
-                    .chunks
-                    .iter()
-                    .chain(self.tiles.iter())
-                    .filter(|s| s.bytes.load(Ordering::Relaxed) > 0)
-                    .min_by_key(|s| s.last_use.load(Ordering::Relaxed));
-                let Some(victim) = oldest else { break };
-                *victim.item.write().expect("slot lock") = None;
-                let freed = victim.bytes.swap(0, Ordering::Relaxed);
-                self.used.fetch_sub(freed, Ordering::Relaxed);
-                self.stats.evictions.fetch_add(1, Ordering::Relaxed);
+            while state.used + bytes > self.budget {
+                if !self.evict_oldest(&mut state) {
+                    break;
+                }
             }
         }
-        *slot.item.write().expect("slot lock") = Some(item.clone());
+        let p = Box::into_raw(Box::new(item));
         slot.bytes.store(bytes, Ordering::Relaxed);
         slot.last_use
             .store(self.clock.load(Ordering::Relaxed), Ordering::Relaxed);
-        let used = self.used.fetch_add(bytes, Ordering::Relaxed) + bytes;
-        self.stats.peak_bytes.fetch_max(used, Ordering::Relaxed);
-        Ok(item)
+        slot.item.store(p, Ordering::Release);
+        state.used += bytes;
+        self.stats
+            .peak_bytes
+            .fetch_max(state.used + state.retired_bytes, Ordering::Relaxed);
+        self.reclaim(&mut state);
+        Ok(p)
     }
 
-    /// Advances the recency clock; rendering threads call it once per pixel, so recency is
-    /// known to the pixel and a hit needs no read-modify-write of a shared counter.
-    pub fn tick(&self) {
-        self.clock.fetch_add(1, Ordering::Relaxed);
+    /// Unlinks the least recently used item and retires it; false if nothing is resident.
+    fn evict_oldest(&self, state: &mut State) -> bool {
+        let oldest = |slots: &[(usize, u64)]| slots.iter().min_by_key(|s| s.1).copied();
+        let stamp =
+            |last: &AtomicU64, item_null: bool| (!item_null).then(|| last.load(Ordering::Relaxed));
+        let chunk = oldest(
+            &self
+                .chunks
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| {
+                    stamp(&s.last_use, s.item.load(Ordering::Relaxed).is_null()).map(|t| (i, t))
+                })
+                .collect::<Vec<_>>(),
+        );
+        let tile = oldest(
+            &self
+                .tiles
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| {
+                    stamp(&s.last_use, s.item.load(Ordering::Relaxed).is_null()).map(|t| (i, t))
+                })
+                .collect::<Vec<_>>(),
+        );
+        let retired = match (chunk, tile) {
+            (Some(c), Some(t)) if t.1 < c.1 => {
+                unlink(&self.tiles[t.0]).map(|(p, b)| (Retired::Tile(p), b))
+            }
+            (Some(c), _) => unlink(&self.chunks[c.0]).map(|(p, b)| (Retired::Chunk(p), b)),
+            (None, Some(t)) => unlink(&self.tiles[t.0]).map(|(p, b)| (Retired::Tile(p), b)),
+            (None, None) => None,
+        };
+        let Some((retired, bytes)) = retired else {
+            return false;
+        };
+        // Readers that announced an epoch after this one cannot have seen the pointer.
+        let unlinked_at = self.epoch.fetch_add(1, Ordering::SeqCst);
+        state.used -= bytes;
+        state.retired_bytes += bytes;
+        state.retired.push((retired, unlinked_at, bytes));
+        self.stats.evictions.fetch_add(1, Ordering::Relaxed);
+        true
     }
 
-    /// Adds this thread's hits to the shared counter.
-    pub fn flush_thread_counts(&self) {
-        let h = LOCAL_HITS.with(|c| c.replace(0));
-        self.stats.hits.fetch_add(h, Ordering::Relaxed);
-    }
-
-    fn get(&self, id: DataId) -> Result<Item, DataError> {
-        let slot = self.slot(id)?;
-        if let Some(item) = slot.item.read().expect("slot lock").clone() {
-            slot.last_use
-                .store(self.clock.load(Ordering::Relaxed), Ordering::Relaxed);
-            LOCAL_HITS.with(|c| c.set(c.get() + 1));
-            return Ok(item);
+    /// Frees retired items that no reader can hold any more.
+    fn reclaim(&self, state: &mut State) {
+        if state.retired.is_empty() {
+            return;
         }
+        let oldest_reader = self
+            .readers
+            .lock()
+            .expect("readers lock")
+            .iter()
+            .map(|r| r.load(Ordering::SeqCst))
+            .min()
+            .unwrap_or(IDLE);
+        let mut freed = 0;
+        state.retired.retain_mut(|(item, unlinked_at, bytes)| {
+            if *unlinked_at < oldest_reader {
+                let item = std::mem::replace(item, Retired::Chunk(std::ptr::null_mut()));
+                // SAFETY: every reader has announced an epoch after the unlink, so none
+                // holds the item.
+                unsafe { item.free() };
+                freed += *bytes;
+                false
+            } else {
+                true
+            }
+        });
+        state.retired_bytes -= freed;
+    }
+
+    /// Fetches a missing item from the fork node (blocking this thread), validates it and
+    /// inserts it; its validated bytes.
+    fn fetch(&self, id: DataId) -> Result<Box<[u32]>, DataError> {
         self.stats.misses.fetch_add(1, Ordering::Relaxed);
         let Some(src) = &self.source else {
             return Err(DataError::Fetch(format!(
@@ -213,54 +341,177 @@ impl DemandCache {
             Transfer::Dma => self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed),
             Transfer::Serial => self.stats.bytes_serial.fetch_add(bytes, Ordering::Relaxed),
         };
-        let item = validate(&self.rules, id, reply.data)?;
-        let size = item_bytes(&item);
-        if size > self.budget {
+        if bytes > self.budget {
             return Err(DataError::Fetch(format!(
-                "{id:?} is {size} bytes, more than the whole cache budget of {} bytes",
+                "{id:?} is {bytes} bytes, more than the whole cache budget of {} bytes",
                 self.budget
             )));
         }
-        self.insert(id, item, size, true)
+        Ok(reply.data)
     }
 }
 
-fn item_bytes(item: &Item) -> u64 {
-    match item {
-        Item::Chunk(c) => c.byte_len() as u64,
-        Item::Tile(t) => t.as_bytes().len() as u64,
+impl Drop for DemandCache {
+    fn drop(&mut self) {
+        let state = self.state.get_mut().expect("cache lock");
+        for (item, _, _) in state.retired.drain(..) {
+            // SAFETY: the cache is being dropped, so no reader exists.
+            unsafe { item.free() };
+        }
+        for s in &self.chunks {
+            let p = s.item.swap(std::ptr::null_mut(), Ordering::AcqRel);
+            if !p.is_null() {
+                // SAFETY: as above; the pointer came from Box::into_raw.
+                unsafe { Retired::Chunk(p).free() };
+            }
+        }
+        for s in &self.tiles {
+            let p = s.item.swap(std::ptr::null_mut(), Ordering::AcqRel);
+            if !p.is_null() {
+                // SAFETY: as above.
+                unsafe { Retired::Tile(p).free() };
+            }
+        }
     }
 }
 
-fn validate(rules: &ChunkRules, id: DataId, words: Box<[u32]>) -> Result<Item, DataError> {
-    match id {
-        DataId::Chunk(c) => {
-            let chunk = Chunk::from_words(words)
-                .map_err(|e| DataError::Corrupt(format!("chunk {c}: {e}")))?;
-            rules.check(c, &chunk).map_err(DataError::Corrupt)?;
-            Ok(Item::Chunk(Arc::new(chunk)))
-        }
-        DataId::Tile(_) => Ok(Item::Tile(Arc::new(Tile::from_words(words)?))),
-        DataId::Synthetic { .. } => Err(DataError::Corrupt("synthetic data in the cache".into())),
+/// Takes an item out of its slot: its pointer and bytes, if it held one.
+fn unlink<T>(slot: &Slot<T>) -> Option<(*mut T, u64)> {
+    let p = slot.item.swap(std::ptr::null_mut(), Ordering::AcqRel);
+    (!p.is_null()).then(|| (p, slot.bytes.swap(0, Ordering::Relaxed)))
+}
+
+/// What differs between chunk and tile slots.
+trait Retire: Sized {
+    fn missing(id: u32) -> DataError;
+}
+
+impl Retire for Chunk {
+    fn missing(id: u32) -> DataError {
+        DataError::NoChunk(id)
     }
 }
 
-impl SceneData for DemandCache {
-    type ChunkRef<'a> = Arc<Chunk>;
-    type TileRef<'a> = Arc<Tile>;
+impl Retire for Tile {
+    fn missing(id: u32) -> DataError {
+        DataError::NoTile(id)
+    }
+}
 
-    fn chunk(&self, id: u32) -> Result<Arc<Chunk>, DataError> {
-        match self.get(DataId::Chunk(id))? {
-            Item::Chunk(c) => Ok(c),
-            Item::Tile(_) => Err(DataError::Corrupt(format!("chunk {id} holds a tile"))),
+fn validate_chunk(rules: &ChunkRules, id: u32, words: Box<[u32]>) -> Result<Chunk, DataError> {
+    let chunk =
+        Chunk::from_words(words).map_err(|e| DataError::Corrupt(format!("chunk {id}: {e}")))?;
+    rules.check(id, &chunk).map_err(DataError::Corrupt)?;
+    Ok(chunk)
+}
+
+/// One rendering thread's view of the cache: its [`SceneData`]. References it hands out
+/// stay valid until [`Reader::refresh`], which needs the reader mutably, so none can outlive
+/// it.
+pub struct Reader<'c> {
+    cache: &'c DemandCache,
+    announced: Arc<AtomicU64>,
+    /// This thread's recency stamp (the clock at its current pixel).
+    now: Cell<u64>,
+    /// Hits not yet added to the shared counter.
+    hits: Cell<u64>,
+}
+
+impl Reader<'_> {
+    /// Lets evicted items that this thread may have used be freed: call it where the
+    /// thread holds no reference into the cache (between scan lines).
+    pub fn refresh(&mut self) {
+        self.flush();
+        self.announced
+            .store(self.cache.epoch.load(Ordering::SeqCst), Ordering::SeqCst);
+    }
+
+    /// Advances the recency clock: rendering threads call it once per pixel, so recency is
+    /// known to the pixel and a hit needs no read-modify-write of a shared counter.
+    pub fn tick(&self) {
+        self.now
+            .set(self.cache.clock.fetch_add(1, Ordering::Relaxed) + 1);
+    }
+
+    fn flush(&self) {
+        let h = self.hits.replace(0);
+        if h > 0 {
+            self.cache.stats.hits.fetch_add(h, Ordering::Relaxed);
         }
     }
 
-    fn tile(&self, id: u32) -> Result<Arc<Tile>, DataError> {
-        match self.get(DataId::Tile(id))? {
-            Item::Tile(t) => Ok(t),
-            Item::Chunk(_) => Err(DataError::Corrupt(format!("tile {id} holds a chunk"))),
+    #[inline(always)]
+    fn hit<'a, T>(&self, slot: &'a Slot<T>, p: *mut T) -> &'a T {
+        // A stamp written only when it changes keeps a shared line clean on most hits.
+        let now = self.now.get();
+        if slot.last_use.load(Ordering::Relaxed) != now {
+            slot.last_use.store(now, Ordering::Relaxed);
         }
+        self.hits.set(self.hits.get() + 1);
+        // SAFETY: the pointer was loaded from the slot after this reader announced its
+        // epoch; it is freed only once every reader has announced a later one, which this
+        // reader does only through `refresh(&mut self)`, after every reference is gone.
+        unsafe { &*p }
+    }
+}
+
+impl Drop for Reader<'_> {
+    fn drop(&mut self) {
+        self.flush();
+        self.announced.store(IDLE, Ordering::SeqCst);
+    }
+}
+
+impl SceneData for Reader<'_> {
+    type ChunkRef<'a>
+        = &'a Chunk
+    where
+        Self: 'a;
+    type TileRef<'a>
+        = &'a Tile
+    where
+        Self: 'a;
+
+    #[inline(always)]
+    fn chunk(&self, id: u32) -> Result<&Chunk, DataError> {
+        let slot = self
+            .cache
+            .chunks
+            .get(id as usize)
+            .ok_or(DataError::NoChunk(id))?;
+        let p = slot.item.load(Ordering::Acquire);
+        if !p.is_null() {
+            return Ok(self.hit(slot, p));
+        }
+        let words = self.cache.fetch(DataId::Chunk(id))?;
+        let chunk = validate_chunk(&self.cache.rules, id, words)?;
+        let bytes = chunk.byte_len() as u64;
+        let p = self
+            .cache
+            .insert(&self.cache.chunks, id, chunk, bytes, true)?;
+        // SAFETY: as in `hit`: loaded (inserted) after this reader announced its epoch.
+        Ok(unsafe { &*p })
+    }
+
+    #[inline(always)]
+    fn tile(&self, id: u32) -> Result<&Tile, DataError> {
+        let slot = self
+            .cache
+            .tiles
+            .get(id as usize)
+            .ok_or(DataError::NoTile(id))?;
+        let p = slot.item.load(Ordering::Acquire);
+        if !p.is_null() {
+            return Ok(self.hit(slot, p));
+        }
+        let words = self.cache.fetch(DataId::Tile(id))?;
+        let tile = Tile::from_words(words)?;
+        let bytes = tile.as_bytes().len() as u64;
+        let p = self
+            .cache
+            .insert(&self.cache.tiles, id, tile, bytes, true)?;
+        // SAFETY: as in `hit`.
+        Ok(unsafe { &*p })
     }
 }
 
@@ -294,32 +545,66 @@ mod tests {
         let size = chunk(0, 4).len() as u64 * 4;
         let cache = DemandCache::new(rules(3), 0, size * 2, None);
         cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
-        cache.tick();
+        let mut reader = cache.reader();
+        reader.tick();
         cache.preload(DataId::Chunk(1), chunk(1, 4)).unwrap();
-        cache.tick();
-        assert!(cache.chunk(0).is_ok());
-        cache.tick();
+        reader.tick();
+        assert!(reader.chunk(0).is_ok());
+        reader.tick();
         // A third, inserted with eviction, pushes out chunk 1 (used least recently).
-        let item = validate(&rules(3), DataId::Chunk(2), chunk(2, 4)).unwrap();
-        cache.insert(DataId::Chunk(2), item, size, true).unwrap();
+        let third = validate_chunk(&rules(3), 2, chunk(2, 4)).unwrap();
+        reader.refresh();
+        cache.insert(&cache.chunks, 2, third, size, true).unwrap();
         assert!(cache.used_bytes() <= size * 2);
-        assert!(cache.chunk(0).is_ok());
-        assert!(cache.chunk(1).is_err(), "chunk 1 should have been evicted");
+        assert!(reader.chunk(0).is_ok());
+        assert!(reader.chunk(1).is_err(), "chunk 1 should have been evicted");
         assert_eq!(cache.stats.evictions.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn an_evicted_chunk_lives_until_its_readers_move_on() {
+        let size = chunk(0, 4).len() as u64 * 4;
+        let cache = DemandCache::new(rules(2), 0, size, None);
+        cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
+        let mut reader = cache.reader();
+        reader.refresh();
+        let held: &Chunk = reader.chunk(0).unwrap();
+        // Another thread's miss evicts chunk 0 while this reader holds it.
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                let c = validate_chunk(&rules(2), 1, chunk(1, 4)).unwrap();
+                cache.insert(&cache.chunks, 1, c, size, true).unwrap();
+            });
+        });
+        assert_eq!(cache.stats.evictions.load(Ordering::Relaxed), 1);
+        assert_eq!(held.header().chunk_id, 0, "still readable");
+        assert_eq!(cache.state.lock().unwrap().retired.len(), 1);
+        reader.refresh();
+        // The next eviction frees it: every reader has announced a later epoch.
+        let c = validate_chunk(&rules(2), 0, chunk(0, 4)).unwrap();
+        cache.insert(&cache.chunks, 0, c, size, true).unwrap();
+        let state = cache.state.lock().unwrap();
+        assert_eq!(state.retired.len(), 1, "only the newly evicted one waits");
+        assert_eq!(cache.stats.evictions.load(Ordering::Relaxed), 2);
     }
 
     #[test]
     fn wrong_or_corrupt_data_is_refused() {
         let rules = ChunkRules::new(vec![(0, 2); 6], 0);
-        assert!(validate(&rules, DataId::Chunk(5), chunk(5, 2)).is_ok());
-        assert!(validate(&rules, DataId::Chunk(5), chunk(4, 2)).is_err());
+        assert!(validate_chunk(&rules, 5, chunk(5, 2)).is_ok());
+        assert!(validate_chunk(&rules, 5, chunk(4, 2)).is_err());
         // The right id, but not what the scene says chunk 5 is.
-        assert!(validate(&rules, DataId::Chunk(5), chunk(5, 3)).is_err());
+        assert!(validate_chunk(&rules, 5, chunk(5, 3)).is_err());
         let other = ChunkRules::new(vec![(1, 2); 6], 0);
-        assert!(validate(&other, DataId::Chunk(5), chunk(5, 2)).is_err());
+        assert!(validate_chunk(&other, 5, chunk(5, 2)).is_err());
         let mut w = chunk(5, 2).to_vec();
         w.truncate(w.len() - 1);
-        assert!(validate(&rules, DataId::Chunk(5), w.into_boxed_slice()).is_err());
-        assert!(validate(&rules, DataId::Tile(0), vec![0u32; 7].into_boxed_slice()).is_err());
+        assert!(validate_chunk(&rules, 5, w.into_boxed_slice()).is_err());
+        let cache = DemandCache::new(rules, 1, 1 << 20, None);
+        assert!(
+            cache
+                .preload(DataId::Tile(0), vec![0u32; 7].into_boxed_slice())
+                .is_err()
+        );
     }
 }

@@ -15,7 +15,7 @@ use fabric::{Fabric, Route};
 use protocol::{JobSpec, Message, NodeId, Rect};
 use renderer::{Scene, render::render_pixel, trace::Tracer};
 
-use crate::cache::DemandCache;
+use crate::cache::{DemandCache, Reader};
 
 /// A subscreen being rendered: rows `next_row..end_row` (relative to `rect`) are still to do.
 /// The host may ask to have the tail back; `end_row` then moves up.
@@ -76,7 +76,7 @@ const ASK_TIMEOUT: Duration = Duration::from_secs(7 * 24 * 3600);
 impl Worker {
     /// Renders subscreens until the host has no more; returns an error message on failure.
     pub fn run(&self) -> Result<(), String> {
-        let tracer = Tracer::new(&self.scene, self.cache.as_ref());
+        let mut reader = self.cache.reader();
         let mut trace_stats = renderer::trace::TraceStats::default();
         let mut finished = None;
         loop {
@@ -117,9 +117,8 @@ impl Worker {
                 .lock()
                 .expect("active lock")
                 .insert(id, active.clone());
-            let result = self.render_subscreen(&tracer, id, &active, &mut trace_stats);
+            let result = self.render_subscreen(&mut reader, id, &active, &mut trace_stats);
             self.active.lock().expect("active lock").remove(&id);
-            self.cache.flush_thread_counts();
             result.map_err(|e| format!("rendering subscreen {id}: {e}"))?;
             self.stats
                 .render_ns
@@ -127,8 +126,9 @@ impl Worker {
             self.stats.subscreens.fetch_add(1, Ordering::Relaxed);
             finished = Some(id);
         }
-        let t = tracer.stats();
-        self.stats.rays.fetch_add(t.rays(), Ordering::Relaxed);
+        self.stats
+            .rays
+            .fetch_add(trace_stats.rays(), Ordering::Relaxed);
         self.stats
             .samples
             .fetch_add(trace_stats.samples, Ordering::Relaxed);
@@ -137,7 +137,7 @@ impl Worker {
 
     fn render_subscreen(
         &self,
-        tracer: &Tracer<DemandCache>,
+        reader: &mut Reader,
         id: u32,
         active: &Active,
         trace_stats: &mut renderer::trace::TraceStats,
@@ -152,12 +152,20 @@ impl Worker {
             }
             let y = rect.y + row;
             line.clear();
+            // Between scan lines this thread holds nothing of the cache: evicted data it
+            // used may be freed.
+            reader.refresh();
+            let tracer = Tracer::new(&self.scene, &*reader);
             for x in rect.x..rect.x + rect.width {
-                self.cache.tick();
-                let px = render_pixel(tracer, &self.job.camera, settings, x, y, trace_stats)
+                reader.tick();
+                let px = render_pixel(&tracer, &self.job.camera, settings, x, y, trace_stats)
                     .map_err(|e| e.to_string())?;
                 line.push(px);
             }
+            let t = tracer.stats();
+            trace_stats.camera_rays += t.camera_rays;
+            trace_stats.secondary_rays += t.secondary_rays;
+            trace_stats.shadow_rays += t.shadow_rays;
             let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(&line).into();
             let msg = Message::Pixels {
                 subscreen: id,

@@ -353,14 +353,16 @@ pub fn walk<const NEAREST_FIRST: bool>(
                     let b = (rest.trailing_zeros() & 7) as usize;
                     let more = rest & (rest - 1);
                     if more == 0 {
-                        // Two children, the commonest case after one: no sort.
-                        if t[a] <= t[b] {
-                            stack.push(node.child[b], t[b]);
-                            cur = node.child[a];
-                        } else {
-                            stack.push(node.child[a], t[a]);
-                            cur = node.child[b];
-                        }
+                        // Two children, the commonest case after one: no sort, and no
+                        // branch on which is nearer (it is as often one as the other).
+                        let (ca, cb) = (node.child[a], node.child[b]);
+                        let (ta, tb) = (t[a].to_bits(), t[b].to_bits());
+                        let swap = 0u32.wrapping_sub((tb < ta) as u32);
+                        let near = ca ^ ((ca ^ cb) & swap);
+                        let far = cb ^ ((ca ^ cb) & swap);
+                        let far_t = tb ^ ((ta ^ tb) & swap);
+                        stack.push(far, f32::from_bits(far_t));
+                        cur = near;
                         continue;
                     }
                     // Three or more: onto the stack, then sorted there, nearest on top.
@@ -474,6 +476,19 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let inv_det = F32x4::splat(1.0).div(det);
     let t = t_scaled.mul(inv_det);
     let t_ok = t.gt(zero).and(t.gt(F32x4::splat(tmax)).not());
+    let maybe = det_ok.and(in_range).and(t_ok).bits() & !(negative & positive) & !undecided & 0xf;
+    let mut out = Lanes {
+        hits: 0,
+        undecided: undecided & 0xf,
+        t: [0.0; 4],
+        u,
+        v,
+        w,
+        inv_det,
+    };
+    if maybe == 0 {
+        return out;
+    }
     // The rounding bound on t (see the scalar test), for every lane at once.
     let max3 = |a: F32x4, b: F32x4, c: F32x4| a.abs().max(b.abs()).max(c.abs());
     let (max_x, max_y, max_z) = (max3(ax, bx, cx), max3(ay, by, cy), max3(az, bz, cz));
@@ -496,17 +511,7 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
                 .add(delta_z.mul(max_e)),
         )
         .mul(inv_det.abs());
-    let clear = t.gt(delta_t);
-    let ok = det_ok.and(in_range).and(t_ok).and(clear).bits();
-    let mut out = Lanes {
-        hits: ok & !(negative & positive) & !undecided & 0xf,
-        undecided: undecided & 0xf,
-        t: [0.0; 4],
-        u,
-        v,
-        w,
-        inv_det,
-    };
+    out.hits = maybe & t.gt(delta_t).bits();
     t.store(&mut out.t);
     out
 }

@@ -223,7 +223,7 @@ pub fn tiles(width: u32, height: u32, size: u32) -> Vec<Rect> {
 /// Renders the whole image in this process on `threads` threads, tile by tile.
 /// `progress(pixels_done, pixels_total)` is called after every tile.
 #[allow(clippy::too_many_arguments)]
-pub fn render_image<D: SceneData>(
+pub fn render_image<D: SceneData + Sync>(
     scene: &Scene,
     data: &D,
     camera: &Camera,

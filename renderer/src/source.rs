@@ -24,7 +24,9 @@ pub enum DataError {
     Cancelled,
 }
 
-pub trait SceneData: Sync {
+/// Implementations need not be shared between threads: a render node gives each rendering
+/// thread a reader of its own (`Sync` is asked for where threads share one).
+pub trait SceneData {
     type ChunkRef<'a>: Deref<Target = Chunk>
     where
         Self: 'a;
