@@ -443,85 +443,156 @@ pub struct MeshData {
     pub material: u32,
 }
 
-/// Cuts `mesh` into spatially coherent pieces of at most `max_tris` triangles by recursive
-/// median splits of triangle centroids along the widest axis. Deterministic.
+/// Cuts `mesh` into spatially coherent pieces of at most `max_tris` triangles: triangles are
+/// ordered along a Morton curve of their centroids, then the order is split recursively at
+/// the highest bit in which the codes differ (an octree's planes, one axis at a time), so
+/// every piece is a box of the octree, or part of one. Deterministic.
 pub fn split_mesh(mesh: &MeshData, max_tris: usize) -> Vec<Vec<u32>> {
     let max_tris = max_tris.max(1);
-    let centroids: Vec<Vec3> = mesh
+    let centroid = |t: &[u32; 3]| {
+        (mesh.positions[t[0] as usize]
+            + mesh.positions[t[1] as usize]
+            + mesh.positions[t[2] as usize])
+            / 3.0
+    };
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for t in &mesh.triangles {
+        let c = centroid(t);
+        lo = lo.min(c);
+        hi = hi.max(c);
+    }
+    let scale = ((1u32 << 10) - 1) as f32 / (hi - lo).max(Vec3::splat(f32::MIN_POSITIVE));
+    let codes: Vec<u32> = mesh
         .triangles
         .iter()
         .map(|t| {
-            (mesh.positions[t[0] as usize]
-                + mesh.positions[t[1] as usize]
-                + mesh.positions[t[2] as usize])
-                / 3.0
+            let q = ((centroid(t) - lo) * scale).max(Vec3::ZERO);
+            morton3(q.to_array().map(|v| (v as u32).min((1 << 10) - 1)))
         })
         .collect();
+    let keyed = radix_sort(&codes);
     let mut out = Vec::new();
-    let mut work = vec![(0..mesh.triangles.len() as u32).collect::<Vec<u32>>()];
-    while let Some(mut tris) = work.pop() {
-        if tris.len() <= max_tris {
-            out.push(tris);
+    // (start, end, highest bit still to split on)
+    let mut work = vec![(0usize, keyed.len(), 29u32)];
+    while let Some((start, end, bit)) = work.pop() {
+        if end - start <= max_tris {
+            out.push(keyed[start..end].iter().map(|k| k.1).collect());
             continue;
         }
-        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-        for &t in &tris {
-            lo = lo.min(centroids[t as usize]);
-            hi = hi.max(centroids[t as usize]);
-        }
-        let ext = hi - lo;
-        let axis = if ext.x >= ext.y && ext.x >= ext.z {
-            0
-        } else if ext.y >= ext.z {
-            1
-        } else {
-            2
+        let range = &keyed[start..end];
+        // The codes share every bit above `bit`: split where `bit` turns on, else go lower.
+        let (mid, next) = match (0..=bit)
+            .rev()
+            .map(|b| (b, range.partition_point(|k| k.0 & (1u32 << b) == 0)))
+            .find(|&(_, m)| m > 0 && m < range.len())
+        {
+            Some((b, m)) => (start + m, b.saturating_sub(1)),
+            // Identical codes: halve.
+            None => (start + range.len() / 2, 0),
         };
-        let mid = tris.len() / 2;
-        tris.select_nth_unstable_by(mid, |&a, &b| {
-            centroids[a as usize][axis]
-                .total_cmp(&centroids[b as usize][axis])
-                .then(a.cmp(&b))
-        });
-        let right = tris.split_off(mid);
-        // Push right first so pieces come out in left-to-right order.
-        work.push(right);
-        work.push(tris);
+        // Right first, so pieces come out in curve order.
+        work.push((mid, end, next));
+        work.push((start, mid, next));
     }
     out
 }
 
-/// Builds the chunk for the triangles `tris` of `mesh`, or `None` when their BVH comes out
-/// deeper than traversal allows (only degenerate clusters of coincident triangles do that;
-/// the caller then splits the piece and tries again).
-pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -> Option<Chunk> {
-    // Triangle boxes, BVH, then triangles in leaf order.
-    let boxes: Vec<Aabb> = tris
+/// Interleaves the bits of three 10-bit numbers (x lowest).
+fn morton3(c: [u32; 3]) -> u32 {
+    let spread = |v: u32| {
+        let mut x = v & 0x3ff;
+        x = (x | x << 16) & 0x0300_00ff;
+        x = (x | x << 8) & 0x0300_f00f;
+        x = (x | x << 4) & 0x030c_30c3;
+        (x | x << 2) & 0x0924_9249
+    };
+    spread(c[0]) | spread(c[1]) << 1 | spread(c[2]) << 2
+}
+
+/// (code, index) pairs ordered by code, then index: a stable least-significant-digit radix
+/// sort, three passes of ten bits (the codes have thirty).
+fn radix_sort(codes: &[u32]) -> Vec<(u32, u32)> {
+    let mut a: Vec<(u32, u32)> = codes
         .iter()
+        .enumerate()
+        .map(|(i, &c)| (c, i as u32))
+        .collect();
+    let mut b = vec![(0u32, 0u32); a.len()];
+    for pass in 0..3 {
+        let shift = 10 * pass;
+        let mut count = [0usize; 1025];
+        for &(c, _) in &a {
+            count[((c >> shift) & 0x3ff) as usize + 1] += 1;
+        }
+        for i in 1..1025 {
+            count[i] += count[i - 1];
+        }
+        for &e in &a {
+            let d = ((e.0 >> shift) & 0x3ff) as usize;
+            b[count[d]] = e;
+            count[d] += 1;
+        }
+        std::mem::swap(&mut a, &mut b);
+    }
+    a
+}
+
+/// Builds the chunk for the triangles `tris` of `mesh` (with a tree of their own), or `None`
+/// when that tree comes out deeper than the walk allows (only degenerate clusters of
+/// coincident triangles do that; the caller then splits the piece and tries again).
+pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -> Option<Chunk> {
+    let mut wide = bvh::build(&triangle_boxes(mesh, tris), bvh::MAX_LEAF);
+    for t in &mut wide.order {
+        *t = tris[*t as usize];
+    }
+    build_chunk_from(mesh, &wide, chunk_id, mesh_id, &mut Vec::new())
+}
+
+/// The box of each of `tris`.
+pub fn triangle_boxes(mesh: &MeshData, tris: &[u32]) -> Vec<Aabb> {
+    tris.iter()
         .map(|&t| {
             let [a, b, c] =
                 mesh.triangles[t as usize].map(|i| Vec3A::from(mesh.positions[i as usize]));
             Aabb::new(a.min(b).min(c), a.max(b).max(c))
         })
-        .collect();
-    let wide = bvh::build(&boxes, bvh::MAX_LEAF);
+        .collect()
+}
+
+/// Builds a chunk from its tree, whose leaf order names `mesh`'s triangles; `None` when the
+/// tree is deeper than the walk allows. `remap` is scratch space for the vertex numbering
+/// (kept between calls for one mesh, so each chunk costs only what it holds).
+pub fn build_chunk_from(
+    mesh: &MeshData,
+    wide: &bvh::WideTree,
+    chunk_id: u32,
+    mesh_id: u32,
+    remap: &mut Vec<u32>,
+) -> Option<Chunk> {
     if bvh::validate_tree(&wide.nodes, wide.order.len()).is_err() {
         return None;
     }
-    let ordered: Vec<u32> = wide.order.iter().map(|&i| tris[i as usize]).collect();
+    let ordered = &wide.order;
 
     // Chunk-local vertices, first use first.
-    let mut remap = std::collections::HashMap::<u32, u32>::new();
-    let mut local_vertices = Vec::new();
+    if remap.len() < mesh.positions.len() {
+        remap.resize(mesh.positions.len(), u32::MAX);
+    }
+    let mut local_vertices: Vec<u32> = Vec::new();
     let mut tri_vertices = Vec::with_capacity(ordered.len());
-    for &t in &ordered {
+    for &t in ordered {
         let idx = mesh.triangles[t as usize].map(|v| {
-            *remap.entry(v).or_insert_with(|| {
+            let slot = &mut remap[v as usize];
+            if *slot == u32::MAX {
+                *slot = local_vertices.len() as u32;
                 local_vertices.push(v);
-                (local_vertices.len() - 1) as u32
-            })
+            }
+            *slot
         });
         tri_vertices.push(idx);
+    }
+    for &v in &local_vertices {
+        remap[v as usize] = u32::MAX;
     }
 
     let has = |len: usize| len == mesh.positions.len() && len > 0;
@@ -543,8 +614,9 @@ pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -
     }
 
     let mut bounds = Aabb::empty();
-    for b in &boxes {
-        bounds = bounds.union(b);
+    for &v in &local_vertices {
+        let p = Vec3A::from(mesh.positions[v as usize]);
+        bounds = Aabb::new(bounds.min.min(p), bounds.max.max(p));
     }
     let header = ChunkHeader {
         magic: CHUNK_MAGIC,
@@ -564,7 +636,7 @@ pub fn build_chunk(mesh: &MeshData, tris: &[u32], chunk_id: u32, mesh_id: u32) -
     let mut words: Vec<u32> = Vec::new();
     words.extend_from_slice(bytemuck::cast_slice(&[header]));
     words.extend_from_slice(bytemuck::cast_slice(&wide.nodes));
-    for &t in &ordered {
+    for &t in ordered {
         let [a, b, c] = mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
         let p = [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z];
         words.extend_from_slice(bytemuck::cast_slice(&p));

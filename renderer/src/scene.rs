@@ -388,6 +388,8 @@ pub enum SceneError {
 /// light list and cuts textures into tiles. Deterministic.
 pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
     let mut chunks: Vec<Chunk> = Vec::new();
+    let mut remap = Vec::new();
+    let mut builder = bvh::Builder::default();
     for (mesh_id, mesh) in desc.meshes.iter().enumerate() {
         let mut work = chunk::split_mesh(mesh, opts.chunk_triangles);
         work.reverse();
@@ -395,21 +397,18 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
             if piece.is_empty() {
                 continue;
             }
-            match chunk::build_chunk(mesh, &piece, chunks.len() as u32, mesh_id as u32) {
+            let id = chunks.len() as u32;
+            let mut wide = builder.build(&chunk::triangle_boxes(mesh, &piece), bvh::MAX_LEAF);
+            for t in &mut wide.order {
+                *t = piece[*t as usize];
+            }
+            match chunk::build_chunk_from(mesh, &wide, id, mesh_id as u32, &mut remap) {
                 Some(c) => chunks.push(c),
                 None => {
                     // Too deep a tree (coincident triangles): halve and retry.
-                    let halves = chunk::split_mesh(
-                        &MeshData {
-                            positions: mesh.positions.clone(),
-                            triangles: piece.iter().map(|&t| mesh.triangles[t as usize]).collect(),
-                            ..Default::default()
-                        },
-                        piece.len().div_ceil(2),
-                    );
-                    for h in halves.into_iter().rev() {
-                        work.push(h.iter().map(|&i| piece[i as usize]).collect());
-                    }
+                    let mid = piece.len() / 2;
+                    work.push(piece[mid..].to_vec());
+                    work.push(piece[..mid].to_vec());
                 }
             }
         }
