@@ -3,6 +3,7 @@
 
 pub mod fuzzing;
 pub mod raybench;
+pub mod whittedbench;
 
 use std::path::PathBuf;
 

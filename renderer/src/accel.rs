@@ -696,9 +696,9 @@ mod tests {
                 })
                 .collect();
             for (lane, t) in tris.iter().enumerate() {
-                for v in 0..3 {
-                    for k in 0..3 {
-                        block.p[3 * v + k][lane] = t[v][k];
+                for (v, corner) in t.iter().enumerate() {
+                    for (k, coord) in corner.to_array().into_iter().enumerate() {
+                        block.p[3 * v + k][lane] = coord;
                     }
                 }
             }

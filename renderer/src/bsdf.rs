@@ -428,12 +428,14 @@ impl Bsdf {
         let m = self.metallic;
         let tr = self.transmission;
         if li.z > 0.0 && geo_reflect {
-            let h = (lo + li).normalize();
-            let voh = lo.dot(h).max(0.0);
-            let fd = self.dielectric_fresnel(voh);
             let mut f =
                 (1.0 - m) * (1.0 - tr) * self.diffuse_weight(lo.z, li.z) * self.base * INV_PI;
-            if !self.is_delta_lobe() {
+            // Without a specular layer (a dielectric of specular factor 0, as Lambertian
+            // surfaces are given) the glossy term is zero: skip its GGX evaluation.
+            if !self.is_delta_lobe() && (m > 0.0 || self.f90 > 0.0) {
+                let h = (lo + li).normalize();
+                let voh = lo.dot(h).max(0.0);
+                let fd = self.dielectric_fresnel(voh);
                 let spec = ggx_d(h, self.alpha) * ggx_g2(lo, li, self.alpha) / (4.0 * lo.z * li.z);
                 f += ((1.0 - m) * fd + m * self.metal_fresnel(voh)) * spec;
             }

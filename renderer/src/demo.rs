@@ -216,3 +216,56 @@ pub fn demo_scene() -> SceneDesc {
         environment: None,
     }
 }
+
+/// A scene made to make a Whitted tracer run away: `count` concentric glass spheres (each a
+/// closed surface of its own), the outermost of radius 1, seen from close by, lit by a point
+/// light above a diffuse floor. Every surface splits a ray into a reflected and a refracted
+/// branch, and total internal reflection between the shells keeps branches strong.
+pub fn glass_shells(count: u32) -> SceneDesc {
+    let glass = Material {
+        name: "glass".into(),
+        base_color: Vec4::ONE,
+        metallic: 0.0,
+        roughness: 0.0,
+        transmission: 1.0,
+        ior: 1.5,
+        thickness: 1.0,
+        ..Material::default()
+    };
+    let floor = Material::diffuse("floor", Vec3::splat(0.7));
+    let mut meshes: Vec<MeshData> = (0..count)
+        .map(|i| {
+            let radius = 1.0 - 0.9 * i as f32 / count.max(1) as f32;
+            sphere(Vec3::ZERO, radius, 32, 16, 0)
+        })
+        .collect();
+    meshes.push(quad(
+        [
+            Vec3::new(-10.0, -1.0, 10.0),
+            Vec3::new(10.0, -1.0, 10.0),
+            Vec3::new(10.0, -1.0, -10.0),
+            Vec3::new(-10.0, -1.0, -10.0),
+        ],
+        1,
+        1.0,
+    ));
+    let camera = Camera::look_at(
+        "shells",
+        Vec3::new(0.4, 0.6, 2.6),
+        Vec3::ZERO,
+        Projection::Perspective {
+            yfov: 45f32.to_radians(),
+        },
+    );
+    SceneDesc {
+        meshes,
+        materials: vec![glass, floor],
+        textures: Vec::new(),
+        lights: vec![crate::light::Light::Point {
+            position: Vec3::new(1.0, 4.0, 2.0),
+            intensity: Vec3::splat(40.0),
+        }],
+        cameras: vec![camera],
+        environment: None,
+    }
+}

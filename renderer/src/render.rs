@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     camera::Camera,
-    integrator::{self, IntegratorKind},
+    integrator::{self, IntegratorKind, WhittedLimits},
     math::luminance,
     sampler::Sampler,
     scene::Scene,
@@ -34,6 +34,7 @@ pub struct RenderSettings {
     pub noise_threshold: f32,
     /// Samples every pixel takes before adaptive sampling may stop it.
     pub min_spp: u32,
+    pub whitted: WhittedLimits,
 }
 
 impl Default for RenderSettings {
@@ -44,9 +45,10 @@ impl Default for RenderSettings {
             spp: 64,
             seed: 0,
             integrator: IntegratorKind::Path,
-            max_depth: 64,
+            max_depth: IntegratorKind::Path.default_max_depth(),
             noise_threshold: 0.0,
             min_spp: 16,
+            whitted: WhittedLimits::default(),
         }
     }
 }
@@ -130,7 +132,7 @@ pub fn render_pixel<D: SceneData>(
             y as f32 + dv,
         );
         tracer.count_camera_ray();
-        let l = integrator::radiance(tracer, settings.integrator, ray, &mut s, settings.max_depth)?;
+        let l = integrator::radiance(tracer, settings, ray, &mut s)?;
         let l = if l.is_finite() {
             l.max(Vec3::ZERO)
         } else {

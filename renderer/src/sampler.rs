@@ -1,7 +1,8 @@
 //! Random numbers keyed on what they are for, never on who draws them.
 //!
-//! Every value is a hash of (seed, pixel, sample index, dimension), where the dimension is
-//! fixed by the bounce and the purpose of the draw. A pixel therefore gets the same numbers
+//! Every value is a function of (seed, pixel, sample index, dimension), where the dimension
+//! is fixed by the bounce and the purpose of the draw: a point of a scrambled Sobol
+//! sequence ([`Sampler`]). A pixel therefore gets the same numbers
 //! whichever thread, tile, subscreen or node renders it, which is what makes images
 //! byte-identical across every way of dividing the work.
 
@@ -19,17 +20,106 @@ fn mix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// Reverses the order of the bits of a 32-bit word.
+#[inline(always)]
+fn reverse(x: u32) -> u32 {
+    x.reverse_bits()
+}
+
+/// A hash that only carries each bit into more significant ones (Laine and Karras 2011),
+/// so that applied to bit-reversed numbers it is an Owen scrambling: each digit of the
+/// fraction is flipped or not according to the digits before it. (Owen scrambling of a
+/// fraction `x` given as 32 bits, most significant first, is `reverse(laine_karras(
+/// reverse(x), seed))`, Burley 2020; the draws below fold neighbouring reversals away.)
+#[inline(always)]
+fn laine_karras(mut x: u32, seed: u32) -> u32 {
+    x = x.wrapping_add(seed);
+    x ^= x.wrapping_mul(0x6c50_b47c);
+    x ^= x.wrapping_mul(0xb82f_1e52);
+    x ^= x.wrapping_mul(0xc7af_e638);
+    x ^= x.wrapping_mul(0x8d22_f6e6);
+    x
+}
+
+/// The second dimension of the Sobol sequence (the first is the bit reversal of the index)
+/// has Pascal's triangle mod 2 for generator matrix, whose columns come from `v ^= v >> 1`.
+/// This table holds, for each byte of an index and each value of that byte, the XOR of the
+/// bit-reversed columns its set bits select: the reversed point is four lookups.
+static SOBOL_SECOND_REVERSED: [[u32; 256]; 4] = {
+    let mut columns = [0u32; 32];
+    let mut v = 1u32 << 31;
+    let mut k = 0;
+    while k < 32 {
+        columns[k] = v.reverse_bits();
+        v ^= v >> 1;
+        k += 1;
+    }
+    let mut table = [[0u32; 256]; 4];
+    let mut byte = 0;
+    while byte < 4 {
+        let mut value = 0;
+        while value < 256 {
+            let mut x = 0;
+            let mut bit = 0;
+            while bit < 8 {
+                if value & (1 << bit) != 0 {
+                    x ^= columns[8 * byte + bit];
+                }
+                bit += 1;
+            }
+            table[byte][value] = x;
+            value += 1;
+        }
+        byte += 1;
+    }
+    table
+};
+
+/// The bit reversal of the Sobol sequence's second dimension at `index`.
+#[inline(always)]
+fn sobol_second_reversed(index: u32) -> u32 {
+    let [b0, b1, b2, b3] = index.to_le_bytes();
+    SOBOL_SECOND_REVERSED[0][b0 as usize]
+        ^ SOBOL_SECOND_REVERSED[1][b1 as usize]
+        ^ SOBOL_SECOND_REVERSED[2][b2 as usize]
+        ^ SOBOL_SECOND_REVERSED[3][b3 as usize]
+}
+
+/// 32 bits of fraction as an f32 in [0, 1).
+#[inline(always)]
+fn unit(x: u32) -> f32 {
+    (x >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
+}
+
+/// The numbers of one sample of one pixel.
+///
+/// Each draw (a 1D value or a 2D pair, at a fixed dimension) is a point of an Owen-scrambled
+/// Sobol sequence (Burley 2020, "Practical hash-based Owen scrambling"): the pixel's samples
+/// are the sequence's points in an order shuffled per pixel and per dimension, each
+/// coordinate scrambled per pixel and per dimension. So the first N samples of a pixel are
+/// stratified in every 2D projection a draw uses (better than independent numbers, most of
+/// all at powers of two), while different dimensions and pixels stay uncorrelated. The
+/// shuffle and scramble seeds are hashes of (seed, pixel, dimension), the index is the
+/// sample's: nothing depends on who renders the pixel.
 #[derive(Clone, Copy, Debug)]
 pub struct Sampler {
-    key: u64,
+    /// Hash of (seed, pixel).
+    pixel: u64,
+    sample: u32,
+    /// The sample index, bit-reversed (the first step of shuffling it).
+    sample_reversed: u32,
     dim: u32,
 }
 
 impl Sampler {
     pub fn new(seed: u64, px: u32, py: u32, sample: u32) -> Sampler {
         let pixel = ((py as u64) << 32) | px as u64;
-        let key = mix64(mix64(mix64(seed ^ 0x6a09_e667_f3bc_c909) ^ pixel) ^ sample as u64);
-        Sampler { key, dim: 0 }
+        Sampler {
+            pixel: mix64(mix64(seed ^ 0x6a09_e667_f3bc_c909) ^ pixel),
+            sample,
+            sample_reversed: reverse(sample),
+            dim: 0,
+        }
     }
 
     /// Moves to the dimensions of bounce `bounce` (0 = the camera ray's first hit).
@@ -38,25 +128,38 @@ impl Sampler {
         self.dim = CAMERA_DIMS + bounce.saturating_mul(DIMS_PER_BOUNCE);
     }
 
-    #[inline]
-    fn next_u64(&mut self) -> u64 {
-        let h = mix64(self.key ^ (self.dim as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    /// The seeds of the current dimension, and a step to the next: (shuffle, scramble x,
+    /// scramble y).
+    #[inline(always)]
+    fn seeds(&mut self) -> (u32, u32, u32) {
+        let h = mix64(self.pixel ^ (self.dim as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
         self.dim = self.dim.wrapping_add(1);
-        h
+        let h2 = mix64(h);
+        (h as u32, (h >> 32) as u32, h2 as u32)
+    }
+
+    /// The sample's index in this dimension's order: the Owen scrambling of its index.
+    #[inline(always)]
+    fn shuffled(&self, shuffle: u32) -> u32 {
+        reverse(laine_karras(self.sample_reversed, shuffle))
     }
 
     /// Uniform in [0, 1).
     #[inline]
     pub fn get_1d(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
+        let (shuffle, sx, _) = self.seeds();
+        // The first Sobol dimension is the reversed index; scrambled, reversed back.
+        unit(reverse(laine_karras(self.shuffled(shuffle), sx)))
     }
 
     #[inline]
     pub fn get_2d(&mut self) -> (f32, f32) {
-        let h = self.next_u64();
-        let a = (h >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
-        let b = ((h >> 8) & 0xff_ffff) as f32 * (1.0 / (1u64 << 24) as f32);
-        (a, b)
+        let (shuffle, sx, sy) = self.seeds();
+        let index = self.shuffled(shuffle);
+        (
+            unit(reverse(laine_karras(index, sx))),
+            unit(reverse(laine_karras(sobol_second_reversed(index), sy))),
+        )
     }
 
     /// The position of the sample within its pixel.
@@ -72,7 +175,7 @@ impl Sampler {
     #[inline]
     pub fn keyed(&self, bounce: u32, a: u32, b: u32) -> f32 {
         let h = mix64(
-            self.key
+            mix64(self.pixel ^ self.sample as u64)
                 ^ mix64(
                     ((bounce as u64) << 32 | a as u64) ^ mix64(b as u64 ^ 0xa5a5_5a5a_dead_beef),
                 ),
@@ -85,6 +188,39 @@ impl Sampler {
 mod tests {
     use super::*;
 
+    /// The tables and folded reversals give the textbook construction's numbers.
+    #[test]
+    fn draws_are_owen_scrambled_sobol_points() {
+        fn owen(x: u32, seed: u32) -> u32 {
+            reverse(laine_karras(reverse(x), seed))
+        }
+        fn sobol_second(mut index: u32) -> u32 {
+            let (mut v, mut x) = (1u32 << 31, 0);
+            while index != 0 {
+                if index & 1 != 0 {
+                    x ^= v;
+                }
+                index >>= 1;
+                v ^= v >> 1;
+            }
+            x
+        }
+        for sample in [0u32, 1, 2, 3, 77, 1023, 65_537, u32::MAX] {
+            let mut s = Sampler::new(5, 3, 4, sample);
+            s.dim = 9;
+            let (shuffle, sx, sy) = {
+                let mut copy = s;
+                copy.seeds()
+            };
+            let index = owen(sample, shuffle);
+            let want = (
+                unit(owen(reverse(index), sx)),
+                unit(owen(sobol_second(index), sy)),
+            );
+            assert_eq!(s.get_2d(), want, "sample {sample}");
+        }
+    }
+
     #[test]
     fn same_key_same_numbers() {
         let mut a = Sampler::new(7, 10, 20, 3);
@@ -93,6 +229,56 @@ mod tests {
         b.start_bounce(2);
         assert_eq!(a.get_2d(), b.get_2d());
         assert_eq!(a.get_1d(), b.get_1d());
+    }
+
+    /// The first 2^k samples of a pixel put exactly one point in each of the 2^k cells of
+    /// every elementary grid (a (0, m, 2)-net): what makes them better than random ones.
+    #[test]
+    fn each_pixel_s_samples_are_stratified_in_2d() {
+        for (px, dim) in [(0u32, 0u32), (5, 4), (77, 20), (1234, 37)] {
+            for k in [4u32, 6, 8] {
+                let n = 1u32 << k;
+                for split in 0..=k {
+                    let (cols, rows) = (1u32 << split, 1u32 << (k - split));
+                    let mut seen = vec![false; n as usize];
+                    for i in 0..n {
+                        let mut s = Sampler::new(3, px, 9, i);
+                        s.dim = dim;
+                        let (x, y) = s.get_2d();
+                        let cell = (y * rows as f32) as u32 * cols + (x * cols as f32) as u32;
+                        assert!(
+                            !seen[cell as usize],
+                            "pixel {px}, dim {dim}, {n} samples, {cols}x{rows}"
+                        );
+                        seen[cell as usize] = true;
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn dimensions_and_pixels_are_uncorrelated() {
+        // The same sample in neighbouring pixels, or two dimensions of one sample, must not
+        // give related numbers (a shared scramble would make them equal).
+        let n = 4096;
+        let mut same = 0;
+        for i in 0..n {
+            let mut a = Sampler::new(1, i, 0, 7);
+            let mut b = Sampler::new(1, i + 1, 0, 7);
+            let (x0, y0) = a.get_2d();
+            let (x1, _) = b.get_2d();
+            let (x2, _) = a.get_2d();
+            same += ((x0 * 8.0) as u32 == (x1 * 8.0) as u32) as u32;
+            same += ((x0 * 8.0) as u32 == (x2 * 8.0) as u32) as u32;
+            same += ((x0 * 8.0) as u32 == (y0 * 8.0) as u32) as u32;
+        }
+        // Independent: each pair lands in the same eighth with probability 1/8.
+        let expected = 3.0 * n as f64 / 8.0;
+        assert!(
+            (same as f64 - expected).abs() < 0.1 * expected,
+            "{same} vs {expected}"
+        );
     }
 
     #[test]

@@ -245,6 +245,9 @@ pub struct Scene {
     pub cameras: Vec<Camera>,
     pub materials: Vec<Material>,
     pub textures: Vec<TextureInfo>,
+    /// Punctual (delta) lights first, then emissive triangles, then the environment: the
+    /// Whitted integrator visits every punctual light at every hit, and finds them as a
+    /// prefix instead of searching a list that may hold a million triangles.
     pub lights: Vec<Light>,
     pub light_distribution: LightDistribution,
     /// Radiance of rays that leave the scene (black: none).
@@ -261,6 +264,12 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The punctual lights: the prefix of `lights` that are points, spots and suns.
+    pub fn punctual_lights(&self) -> &[Light] {
+        let n = self.lights.iter().take_while(|l| l.is_delta()).count();
+        &self.lights[..n]
+    }
+
     /// What chunks from elsewhere must agree with (see [`ChunkRules`]).
     pub fn chunk_rules(&self) -> ChunkRules {
         ChunkRules::new(
@@ -321,6 +330,13 @@ impl Scene {
             return bad(format!(
                 "textures hold {tiles} tiles, header says {}",
                 self.tile_count
+            ));
+        }
+        let punctual = self.punctual_lights().len();
+        if let Some(i) = self.lights[punctual..].iter().position(|l| l.is_delta()) {
+            return bad(format!(
+                "punctual light {} follows other lights",
+                punctual + i
             ));
         }
         for (i, l) in self.lights.iter().enumerate() {

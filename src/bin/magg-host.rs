@@ -196,6 +196,28 @@ enum BenchCmd {
     /// Cast the rays of a file into a mesh on one thread, as render does: rays per second
     /// and each ray's hit (formats in the README; bench/peers/embree.py uses it).
     Rays(RaysArgs),
+    /// Render every glTF scene under a folder with the path and the Whitted integrator: times,
+    /// specular rays per camera ray, and what Whitted's pruning costs on glass scenes.
+    Whitted(WhittedArgs),
+}
+
+#[derive(Args)]
+struct WhittedArgs {
+    /// The folder of scenes (searched recursively for .gltf and .glb files); the full sweep
+    /// is `../shared/scenes/khronos`.
+    #[arg(default_value = "tests/data/scenes/khronos")]
+    scenes: PathBuf,
+    #[arg(long, default_value_t = 320)]
+    width: u32,
+    #[arg(long, default_value_t = 240)]
+    height: u32,
+    #[arg(long, default_value_t = 4)]
+    spp: u32,
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -233,12 +255,12 @@ struct BenchArgs {
     #[arg(long, default_value_t = 1_100_000)]
     triangles: usize,
     /// The Cornell box scene, for samples per second.
-    #[arg(long, default_value = "../shared/scenes/cornell/cornell.gltf")]
+    #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
     cornell: PathBuf,
     /// A textured scene, rendered with and without its textures.
     #[arg(
         long,
-        default_value = "../shared/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
+        default_value = "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
     )]
     textured: PathBuf,
     /// Rays per measurement.
@@ -305,9 +327,9 @@ struct RenderArgs {
     /// path (unbiased path tracing) or whitted (the paper's ray tracer).
     #[arg(long, default_value = "path")]
     integrator: IntegratorKind,
-    /// Longest path, in bounces.
-    #[arg(long, default_value_t = 64)]
-    max_depth: u32,
+    /// Longest path, in bounces [default: 64 for path, 16 for whitted].
+    #[arg(long)]
+    max_depth: Option<u32>,
     /// Adaptive sampling: stop a pixel once its relative standard error is below this (0: off).
     #[arg(long, default_value_t = 0.0)]
     noise_threshold: f32,
@@ -385,9 +407,12 @@ fn render(args: RenderArgs) -> Result<()> {
         spp: args.spp,
         seed: args.seed,
         integrator: args.integrator,
-        max_depth: args.max_depth,
+        max_depth: args
+            .max_depth
+            .unwrap_or(args.integrator.default_max_depth()),
         noise_threshold: args.noise_threshold,
         min_spp: 16,
+        ..RenderSettings::default()
     };
     let threads = args
         .threads
@@ -505,9 +530,76 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
     Ok(())
 }
 
+fn bench_whitted(a: WhittedArgs) -> Result<()> {
+    let cfg = magg::whittedbench::WhittedConfig {
+        scenes: a.scenes,
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        threads: a
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+    };
+    let r = magg::whittedbench::run(&cfg, &|m| eprintln!("{m}"))?;
+    println!(
+        "{}x{}, {} spp, {} threads",
+        cfg.width, cfg.height, cfg.spp, cfg.threads
+    );
+    println!(
+        "| scene | triangles | path (s) | whitted (s) | whitted/path | specular rays a camera ray | pruning relMSE |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for row in &r.rows {
+        println!(
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.1} | {} |",
+            row.scene,
+            row.triangles,
+            row.path_seconds,
+            row.whitted_seconds,
+            row.ratio,
+            row.specular_rays_per_camera_ray,
+            row.pruning_rel_mse
+                .map(|e| format!("{e:.2e}"))
+                .unwrap_or_else(|| "no glass".into())
+        );
+    }
+    if let Some(worst) = r.rows.iter().max_by(|a, b| a.ratio.total_cmp(&b.ratio)) {
+        println!(
+            "slowest against the path tracer: {} at {:.2}x ({:.2} s against {:.2} s)",
+            worst.scene, worst.ratio, worst.whitted_seconds, worst.path_seconds
+        );
+    }
+    if let Some(worst) = r
+        .rows
+        .iter()
+        .filter_map(|row| row.pruning_rel_mse.map(|e| (row, e)))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+    {
+        println!(
+            "largest pruning error: {} at relMSE {:.2e}",
+            worst.0.scene, worst.1
+        );
+    }
+    for (name, reason) in &r.refused {
+        println!("refused by the loader: {name}: {reason}");
+    }
+    let h = &r.hostile;
+    println!(
+        "{} nested glass shells, {}x{}, 1 spp: {:.2} s, {:.1} specular rays a camera ray",
+        h.shells, h.width, h.height, h.seconds, h.specular_rays_per_camera_ray
+    );
+    if let Some(p) = a.json {
+        std::fs::write(&p, serde_json::to_vec_pretty(&r)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}
+
 fn bench(args: BenchArgs) -> Result<()> {
-    if let Some(BenchCmd::Rays(a)) = args.what {
-        return bench_rays(a);
+    match args.what {
+        Some(BenchCmd::Rays(a)) => return bench_rays(a),
+        Some(BenchCmd::Whitted(a)) => return bench_whitted(a),
+        None => {}
     }
     let threads = args
         .threads
