@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
-# Every test: the workspace's tests (unit, property, golden-image, cross-process, cluster, and
+# Every test: the code's habits (scripts/check.sh: fmt, clippy, docs, --locked, layering),
+# the workspace's tests (unit, property, golden-image, cross-process, cluster, and
 # the replay of the fuzzing corpus), the container deployment's tests when a Docker daemon
 # answers, then a short bounded fuzz run of every target when
-# cargo-fuzz is installed (.ci/run installs it). Needs ../shared beside the repository.
+# cargo-fuzz is installed (.ci/run installs it). The repository carries the data it needs
+# (tests/data); with ../shared beside it, the scene sweep covers every shared scene as well.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cargo test --workspace --release
+scripts/check.sh
+cargo test --workspace --release --locked
 
 # The container deployment needs a Docker daemon; without one it is skipped, and says so.
 if docker info >/dev/null 2>&1; then

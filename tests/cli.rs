@@ -117,8 +117,7 @@ fn mistakes_are_one_clear_line() {
 #[test]
 fn a_required_unknown_extension_is_refused_by_name() {
     let dir = scratch("iridescence");
-    let scene =
-        shared().join("scenes/khronos/IridescenceSuzanne/glTF-Binary/IridescenceSuzanne.glb");
+    let scene = data().join("scenes/khronos/IridescenceSuzanne/glTF-Binary/IridescenceSuzanne.glb");
     expect_error(
         &["render", scene.to_str().unwrap()],
         &dir.join("x.png"),

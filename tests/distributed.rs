@@ -28,7 +28,7 @@ fn exited(pid: u64) -> bool {
 }
 
 fn helmet() -> PathBuf {
-    shared().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb")
+    data().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb")
 }
 
 #[test]

@@ -59,6 +59,25 @@ struct Project {
     env: Vec<(String, String)>,
 }
 
+/// Compose as this host has it: the v2 plugin (`docker compose`) when it answers, else the
+/// v1 program (`docker-compose`).
+fn compose_command() -> Command {
+    static V2: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let v2 = *V2.get_or_init(|| {
+        Command::new("docker")
+            .args(["compose", "version"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    });
+    if v2 {
+        let mut c = Command::new("docker");
+        c.arg("compose");
+        c
+    } else {
+        Command::new("docker-compose")
+    }
+}
+
 impl Project {
     fn new(name: &str, small: bool, render_args: &str) -> Project {
         image();
@@ -80,7 +99,7 @@ impl Project {
         let env = vec![
             (
                 "MAGG_INPUT".into(),
-                shared().join("scenes").display().to_string(),
+                data().join("scenes").display().to_string(),
             ),
             ("MAGG_OUT".into(), out.display().to_string()),
             ("MAGG_SECRET_FILE".into(), secret.display().to_string()),
@@ -97,13 +116,13 @@ impl Project {
     }
 
     fn compose(&self, args: &[&str]) -> Output {
-        let mut c = Command::new("docker-compose");
+        let mut c = compose_command();
         c.arg("-p").arg(&self.name);
         for f in &self.files {
             c.arg("-f").arg(f);
         }
         c.args(args).envs(self.env.iter().map(|(k, v)| (k, v)));
-        c.output().expect("run docker-compose")
+        c.output().expect("run docker compose")
     }
 
     fn down(&self) {
@@ -214,9 +233,9 @@ fn wait_exit(id: &str, limit: Duration) -> Option<i64> {
     }
 }
 
-/// What the same settings give in one process here (`/input/` is the shared scenes).
+/// What the same settings give in one process here (`/input/` is `tests/data/scenes`).
 fn in_process_here(dir: &Path, args: &[&str]) -> PathBuf {
-    let scenes = shared().join("scenes");
+    let scenes = data().join("scenes");
     let args: Vec<String> = args
         .iter()
         .map(|a| match a.strip_prefix("/input/") {

@@ -113,7 +113,7 @@ struct Cluster {
 }
 
 fn cornell() -> PathBuf {
-    shared().join("scenes/cornell/cornell.gltf")
+    data().join("scenes/cornell/cornell.gltf")
 }
 
 /// Starts a listen-mode host rendering `args` for `topology`, then its nodes, all on

@@ -39,7 +39,7 @@ const SCENES: &[(&str, &str)] = &[
 ];
 
 fn render(file: &str, spp: u32, seed: u64) -> Image {
-    let loaded = scene_io::load_gltf(&shared().join("scenes/khronos").join(file)).unwrap();
+    let loaded = scene_io::load_gltf(&data().join("scenes/khronos").join(file)).unwrap();
     let (scene, data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
     let camera = scene.camera(None, 1.0).unwrap();
     let s = RenderSettings {

@@ -125,7 +125,7 @@ fn a_valid_generated_file_renders() {
 fn truncated_glb_is_refused() {
     let dir = scratch("hostile-glb");
     let src =
-        std::fs::read(shared().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"))
+        std::fs::read(data().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"))
             .unwrap();
     for (name, cut) in [
         ("half.glb", src.len() / 2),
@@ -201,7 +201,7 @@ fn nan_positions_are_skipped_with_a_warning() {
 fn missing_or_empty_textures_fall_back_with_a_warning() {
     let dir = scratch("hostile-texture");
     // BoxTextured without its image file.
-    let src = shared().join("scenes/khronos/BoxTextured/glTF");
+    let src = data().join("scenes/khronos/BoxTextured/glTF");
     for f in ["BoxTextured.gltf", "BoxTextured0.bin"] {
         std::fs::copy(src.join(f), dir.join(f)).unwrap();
     }

@@ -11,7 +11,7 @@ use renderer::{PrepareOptions, RenderSettings, render::render_image};
 
 /// The Cornell box under a root node that scales and moves it.
 fn transformed_cornell(scale: f64, translation: f64) -> String {
-    let text = std::fs::read_to_string(shared().join("scenes/cornell/cornell.gltf")).unwrap();
+    let text = std::fs::read_to_string(data().join("scenes/cornell/cornell.gltf")).unwrap();
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     let children = v["scenes"][0]["nodes"].clone();
     let nodes = v["nodes"].as_array_mut().unwrap();

@@ -4,15 +4,23 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-/// `../shared` beside the repository: real scenes and references written by others.
-pub fn shared() -> PathBuf {
+/// `tests/data`: the real scenes (written by others) and the reference image the tests
+/// need, carried by the repository (`tests/data/README.md` lists them and their licences).
+pub fn data() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data")
+}
+
+/// `../shared` beside the repository, when it is there (CI puts it there): every scene of
+/// the project's shared data, for the sweeps that go beyond `tests/data`. `None`, after one
+/// line saying what is skipped, on a clone without it.
+pub fn shared_if_present(what: &str) -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
-    assert!(
-        p.join("scenes").is_dir(),
-        "{} is missing: the tests need ../shared beside the repository",
-        p.display()
-    );
-    p
+    if p.join("scenes").is_dir() {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: {what} (no ../shared beside the repository)");
+        None
+    }
 }
 
 pub fn host() -> Command {

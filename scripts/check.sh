@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The code's habits, checked: formatting, clippy with warnings as errors on every target,
+# documentation that builds without warnings, the lock file as committed, and the layering
+# invariant that the renderer core reaches no network, runtime or process crate.
+# scripts/test.sh runs this first.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+cargo fmt --all --check
+cargo clippy --workspace --all-targets --locked -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked --quiet
+
+# The renderer core (and the file formats under it) know nothing of sockets, async
+# runtimes or processes: ARCHITECTURE.md's first invariant.
+for crate in renderer scene-io; do
+    forbidden=$(cargo tree --locked -p "$crate" -e normal --prefix none --format '{p}' \
+        | awk '{print $1}' | sort -u \
+        | grep -E '^(tokio|mio|socket2|async-std|smol|futures|nix|rustix|protocol|fabric|host|fork-node|render-node)$' || true)
+    if [ -n "$forbidden" ]; then
+        echo "invariant broken: $crate depends on: $forbidden" >&2
+        exit 1
+    fi
+done
+echo "checks passed: fmt, clippy, docs, --locked, renderer layering"
