@@ -57,6 +57,9 @@ pub struct Bsdf {
     p_diffuse: f32,
     p_specular: f32,
     p_transmit: f32,
+    /// Nothing but the diffuse base (no metal, no specular layer, no transmission): the
+    /// commonest surface, evaluated and sampled without any glossy or layering terms.
+    lambert: bool,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -335,7 +338,15 @@ impl Bsdf {
             p_diffuse: 0.0,
             p_specular: 0.0,
             p_transmit: 0.0,
+            lambert: false,
         };
+        if p.metallic == 0.0 && p.specular == 0.0 && bsdf.transmission == 0.0 {
+            // With no layer on top, the general lobe weights below come out as exactly
+            // (1, 0, 0); say so directly.
+            bsdf.lambert = true;
+            bsdf.p_diffuse = 1.0;
+            return bsdf;
+        }
         let cos_o = frame.to_local(wo).z.max(1e-4);
         bsdf.albedo_o = bsdf.layer_albedo(cos_o);
         if p.specular > 0.0 {
@@ -419,6 +430,13 @@ impl Bsdf {
 
     /// f(wo, wi) of the non-delta lobes (world directions, unit).
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        if self.lambert {
+            return if self.reflects_diffusely(wo, wi).is_some() {
+                self.base * INV_PI
+            } else {
+                Vec3::ZERO
+            };
+        }
         let lo = self.frame.to_local(wo);
         let li = self.frame.to_local(wi);
         if lo.z <= 0.0 {
@@ -484,6 +502,14 @@ impl Bsdf {
         Some((h, voh, ioh))
     }
 
+    /// For a Lambertian surface: the cosine of `wi` to the shading normal when light
+    /// from `wi` reflects towards `wo` (both above the shading and the true surface).
+    #[inline]
+    fn reflects_diffusely(&self, wo: Vec3, wi: Vec3) -> Option<f32> {
+        let (cos_o, cos_i) = (wo.dot(self.frame.n), wi.dot(self.frame.n));
+        (cos_o > 0.0 && cos_i > 0.0 && wi.dot(self.ng) > 0.0).then_some(cos_i)
+    }
+
     /// Density of sampling `wi` by the three lobes proper (non-delta only).
     fn pdf_lobes(&self, wo: Vec3, wi: Vec3) -> f32 {
         let lo = self.frame.to_local(wo);
@@ -521,6 +547,22 @@ impl Bsdf {
 
     /// Draws an incident direction. `u_lobe` picks the lobe, `u` drives it.
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: (f32, f32)) -> Option<BsdfSample> {
+        if self.lambert {
+            let wi = self.frame.to_world(cosine_hemisphere(u));
+            let cos_i = self.reflects_diffusely(wo, wi)?;
+            let pdf = cos_i * INV_PI;
+            if !(pdf > 0.0) {
+                return None;
+            }
+            // f cos / pdf = (base / pi) cos / (cos / pi).
+            return Some(BsdfSample {
+                wi,
+                weight: self.base,
+                pdf,
+                delta: false,
+                transmitted: false,
+            });
+        }
         let lo = self.frame.to_local(wo);
         if lo.z <= 0.0 {
             return None;
@@ -694,6 +736,9 @@ impl Bsdf {
     /// Density of sampling `wi` by any lobe, including the reflecting half of a rough
     /// refracting interface (drawn by the transmission lobe); pairs with [`Bsdf::eval`].
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        if self.lambert {
+            return self.reflects_diffusely(wo, wi).map_or(0.0, |c| c * INV_PI);
+        }
         let mut pdf = self.pdf_lobes(wo, wi);
         if self.volume && !self.is_delta_lobe() && self.p_transmit > 0.0 {
             let lo = self.frame.to_local(wo);
