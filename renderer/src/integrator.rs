@@ -98,7 +98,7 @@ pub fn radiance<D: SceneData>(
 ) -> Result<Vec3, DataError> {
     let max_depth = settings.max_depth;
     match settings.integrator {
-        IntegratorKind::Path => path(t, ray, sampler, max_depth),
+        IntegratorKind::Path => path(t, ray, sampler, max_depth, settings.clamp_indirect),
         IntegratorKind::Whitted => whitted(
             t,
             ray,
@@ -151,11 +151,26 @@ fn next_medium(m: &Material, material_id: u32, front: bool, current: Option<u32>
     }
 }
 
+/// Light found by a caustic path (a rough bounce, then mirrors or glass, then the light:
+/// what light sampling cannot find, so only rare lucky paths carry it), limited to `clamp`
+/// in its largest channel when clamping is on (`clamp > 0`). Biased: it removes the energy
+/// of the brightest such paths along with their noise (fireflies); off unless asked for.
+#[inline]
+fn clamped(c: Vec3, caustic: bool, clamp: f32) -> Vec3 {
+    let peak = c.max_element();
+    if caustic && clamp > 0.0 && peak > clamp {
+        c * (clamp / peak)
+    } else {
+        c
+    }
+}
+
 fn path<D: SceneData>(
     t: &Tracer<D>,
     mut ray: Ray,
     sampler: &mut Sampler,
     max_depth: u32,
+    clamp: f32,
 ) -> Result<Vec3, DataError> {
     let scene = t.scene;
     let mut l = Vec3::ZERO;
@@ -163,6 +178,9 @@ fn path<D: SceneData>(
     // Where the previous bounce sampled its direction, its density and whether it was a delta.
     let mut prev: Option<(Vec3, f32, bool)> = None;
     let mut medium: Option<u32> = None;
+    // Whether the path has scattered off a rough surface: light it then finds right after a
+    // mirror or glass bounce came by a caustic path.
+    let mut scattered_rough = false;
 
     for bounce in 0..max_depth {
         sampler.start_bounce(bounce);
@@ -180,7 +198,9 @@ fn path<D: SceneData>(
                         power_heuristic(pdf_bsdf, pmf * UNIFORM_SPHERE_PDF)
                     }
                 };
-                l += beta * scene.environment.radiance(Vec3::from(ray.dir).normalize()) * weight;
+                let c = beta * scene.environment.radiance(Vec3::from(ray.dir).normalize()) * weight;
+                let caustic = scattered_rough && matches!(prev, Some((_, _, true)));
+                l += clamped(c, caustic, clamp);
             }
             break;
         };
@@ -211,7 +231,8 @@ fn path<D: SceneData>(
                     }
                 }
             };
-            l += beta * params.emission * weight;
+            let caustic = scattered_rough && matches!(prev, Some((_, _, true)));
+            l += clamped(beta * params.emission * weight, caustic, clamp);
         }
 
         let bsdf = Bsdf::new(&params, s.ng, wo);
@@ -267,6 +288,7 @@ fn path<D: SceneData>(
         ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
         t.count_secondary_ray();
         prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
+        scattered_rough |= !bs.delta;
     }
     Ok(l)
 }

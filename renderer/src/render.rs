@@ -35,6 +35,9 @@ pub struct RenderSettings {
     /// Samples every pixel takes before adaptive sampling may stop it.
     pub min_spp: u32,
     pub whitted: WhittedLimits,
+    /// The path tracer's light by more than one bounce is limited to this (largest channel)
+    /// per sample; 0 (the default) leaves it unbiased. See `integrator::clamped`.
+    pub clamp_indirect: f32,
 }
 
 impl Default for RenderSettings {
@@ -49,6 +52,7 @@ impl Default for RenderSettings {
             noise_threshold: 0.0,
             min_spp: 16,
             whitted: WhittedLimits::default(),
+            clamp_indirect: 0.0,
         }
     }
 }
