@@ -2,13 +2,14 @@
 # The code's habits, checked: formatting, clippy with warnings as errors on every target,
 # documentation that builds without warnings, the lock file as committed, and the layering
 # invariant that the renderer core reaches no network, runtime or process crate.
-# scripts/test.sh runs this first.
+# scripts/test.sh runs this first. In the release profile, so that clippy and rustdoc reuse
+# the proc macros and build scripts the release build and tests compile anyway.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 cargo fmt --all --check
-cargo clippy --workspace --all-targets --locked -- -D warnings
-RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked --quiet
+cargo clippy --release --workspace --all-targets --locked -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc --release --workspace --no-deps --locked --quiet
 
 # The renderer core (and the file formats under it) know nothing of sockets, async
 # runtimes or processes: ARCHITECTURE.md's first invariant.

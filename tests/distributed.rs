@@ -81,6 +81,13 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
         );
     }
     let t = &v["totals"];
+    // Every counter the summary shows is filled in for a cluster as for one process.
+    assert_eq!(v["rays"]["camera"].as_u64().unwrap(), 200 * 150 * 4);
+    assert!(v["rays"]["secondary"].as_u64().unwrap() > 0);
+    assert!(v["rays"]["shadow"].as_u64().unwrap() > 0);
+    assert_eq!(v["bad_samples"].as_u64().unwrap(), 0);
+    assert!(v["peak_rss_bytes"].as_u64().unwrap() > 0);
+    assert!(t["cache_peak_bytes"].as_u64().unwrap() > 0);
     assert!(t["cache_misses"].as_u64().unwrap() > 0);
     assert!(
         t["cache_evictions"].as_u64().unwrap() > 0,

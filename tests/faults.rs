@@ -134,7 +134,14 @@ fn start_cluster_on<S: AsRef<OsStr>>(
     let stats = dir.join("stats.json");
     let host = Logged::start(
         host()
-            .args(["--log", "info", "render", "--quiet", "--topology", topology])
+            .args([
+                "--log",
+                "info,magg::event=debug",
+                "render",
+                "--quiet",
+                "--topology",
+                topology,
+            ])
             .arg("--listen")
             .arg(format!("{host_ip}:0"))
             .args(args)
@@ -193,6 +200,19 @@ fn start_cluster_on<S: AsRef<OsStr>>(
 }
 
 impl Cluster {
+    /// Waits until pixels rendered by render node `node` (any node: `None`) reach the host:
+    /// the render is under way there, so a kill lands in its middle whatever the machine's
+    /// speed.
+    fn wait_for_pixels_from(&self, node: Option<u32>) {
+        let needle = match node {
+            Some(n) => format!("MAGG_EVENT pixels node={n} "),
+            None => "MAGG_EVENT pixels node=".to_string(),
+        };
+        self.host
+            .wait_for(&needle, Duration::from_secs(60))
+            .unwrap_or_else(|| panic!("no pixels from {node:?}: {}", self.host.log()));
+    }
+
     fn node(&mut self, id: u32) -> &mut Logged {
         &mut self
             .nodes
@@ -236,7 +256,7 @@ fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
     // grid:1x3x3: host 0, fork node 1 linked to render node 2; render nodes 2..=10 in a 3x3
     // mesh. Node 6 is the middle one: routes between its neighbours must go around it.
     let mut c = start_cluster(&dir, "grid:1x3x3", &args);
-    std::thread::sleep(Duration::from_millis(1000));
+    c.wait_for_pixels_from(Some(6));
     let killed_at = Instant::now();
     let victim_pid = c.node(6).pid();
     c.node(6).kill9();
@@ -277,7 +297,7 @@ fn a_render_node_cut_off_from_the_mesh_works_on_over_its_direct_connections() {
     // leaves node 4 with no mesh path to anyone: its requests for work and data go over
     // its direct connections to the host and the fork node instead.
     let mut c = start_cluster(&dir, "grid:1x1x3", &args);
-    std::thread::sleep(Duration::from_millis(800));
+    c.wait_for_pixels_from(Some(3));
     c.node(3).kill9();
     c.host
         .wait_for("lost render node 3", Duration::from_secs(10))
@@ -312,7 +332,7 @@ fn a_killed_fork_node_ends_the_render_with_no_image() {
     let dir = scratch("fault-fork-node");
     let args = long_render();
     let mut c = start_cluster(&dir, "tiny", &args);
-    std::thread::sleep(Duration::from_millis(800));
+    c.wait_for_pixels_from(None);
     let fork_pid = c.node(1).pid();
     let killed_at = Instant::now();
     c.node(1).kill9();
@@ -339,7 +359,7 @@ fn a_killed_host_stops_every_node() {
     let dir = scratch("fault-host");
     let args = long_render();
     let mut c = start_cluster(&dir, "tiny", &args);
-    std::thread::sleep(Duration::from_millis(800));
+    c.wait_for_pixels_from(None);
     c.host.kill9();
     let killed_at = Instant::now();
     c.nodes_exit(Duration::from_secs(10));
@@ -489,14 +509,20 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
     let out = dir.join("cluster.png");
     let mut host = Logged::start(
         host()
-            .args(["--log", "info", "render", "--quiet", "--spawn", "tiny"])
+            .args([
+                "--log",
+                "info,magg::event=debug",
+                "render",
+                "--quiet",
+                "--spawn",
+                "tiny",
+            ])
             .args(&args)
             .arg("-o")
             .arg(&out),
     );
-    host.wait_for("subscreens on", Duration::from_secs(60))
+    host.wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
         .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
-    std::thread::sleep(Duration::from_millis(800));
     let render_child = children_of(host.pid())
         .into_iter()
         .find(|&p| {

@@ -18,3 +18,17 @@ pub mod topology;
 pub use model::Model;
 pub use node::{Delivery, Fabric, RequestError, Route, SendError, Via};
 pub use topology::Topology;
+
+/// Peak resident memory of this process (Linux `VmHWM`), in bytes; 0 where it cannot be read.
+/// Every role reports it in its stats.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}

@@ -216,7 +216,7 @@ impl State {
                     frames_forwarded: c.frames_forwarded,
                     frames_around_mesh: c.frames_around_mesh,
                     bytes_forwarded: c.bytes_forwarded,
-                    peak_rss_bytes: peak_rss_bytes(),
+                    peak_rss_bytes: fabric::peak_rss_bytes(),
                     ..NodeStats::default()
                 };
                 let _ = f.send_control(0, &Message::NodeStats(Box::new(stats)));
@@ -675,17 +675,4 @@ fn prepare_scene(a: SceneAssembly) -> Result<(Scene, renderer::MemoryData), Stri
         chunk_triangles: (a.chunk_triangles as usize).max(1),
     };
     Ok(renderer::prepare(desc, &opts))
-}
-
-/// Peak resident memory of this process (Linux VmHWM), in bytes.
-pub fn peak_rss_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
 }

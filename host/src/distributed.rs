@@ -133,6 +133,8 @@ pub fn subscreens(width: u32, height: u32, n: u32) -> Vec<Rect> {
 struct Sub {
     rect: Rect,
     node: Option<NodeId>,
+    /// Whether pixels of it have arrived since it was last handed out.
+    pixels_seen: bool,
     giving_back: bool,
     /// When its node said it had sent every row.
     finished_at: Option<Instant>,
@@ -143,6 +145,7 @@ impl Sub {
         Sub {
             rect,
             node: None,
+            pixels_seen: false,
             giving_back: false,
             finished_at: None,
         }
@@ -555,11 +558,21 @@ async fn drive(
                             ask_give_back(&f, &mut subs, &fb);
                         }
                     }
-                    Message::Pixels { x, y, width, .. }
-                        if matches!(via, Via::Direct(_))
-                            && fb.put(x, y, width, &frame.data) > 0 =>
-                    {
+                    Message::Pixels {
+                        subscreen,
+                        x,
+                        y,
+                        width,
+                    } if matches!(via, Via::Direct(_)) && fb.put(x, y, width, &frame.data) > 0 => {
                         progress.update(total - fb.missing, total);
+                        if let Some(s) = subs.get_mut(subscreen as usize)
+                            && !s.pixels_seen
+                        {
+                            s.pixels_seen = true;
+                            if let Some(node) = s.node {
+                                event_first_pixels(node, subscreen);
+                            }
+                        }
                     }
                     Message::Failed { node, message } => {
                         return Err(ClusterRenderError::Failed(format!(
@@ -691,6 +704,11 @@ async fn drive(
         totals.pixels += n.pixels;
         totals.samples += n.samples;
         totals.rays += n.rays;
+        totals.camera_rays += n.camera_rays;
+        totals.secondary_rays += n.secondary_rays;
+        totals.shadow_rays += n.shadow_rays;
+        totals.bad_samples += n.bad_samples;
+        totals.cache_peak_bytes += n.cache_peak_bytes;
         totals.cache_hits += n.cache_hits;
         totals.cache_misses += n.cache_misses;
         totals.cache_evictions += n.cache_evictions;
@@ -706,7 +724,7 @@ async fn drive(
         totals.idle_s += n.idle_s;
         totals.peak_rss_bytes += n.peak_rss_bytes;
     }
-    let host_rss = crate::stats::peak_rss_bytes();
+    let host_rss = fabric::peak_rss_bytes();
     let mut render = RenderStats {
         scene: rc.scene.to_string(),
         output: rc.output.display().to_string(),
@@ -728,7 +746,20 @@ async fn drive(
     render.seconds.write = write_s;
     render.seconds.total = t0.elapsed().as_secs_f64();
     render.samples = totals.samples;
-    render.rays.total = totals.rays;
+    render.bad_samples = totals.bad_samples;
+    render.peak_rss_bytes = host_rss;
+    render.rays = crate::stats::Rays {
+        camera: totals.camera_rays,
+        secondary: totals.secondary_rays,
+        shadow: totals.shadow_rays,
+        total: totals.rays,
+    };
+    if totals.bad_samples > 0 {
+        tracing::warn!(
+            "{} samples were NaN or infinite and counted as black",
+            totals.bad_samples
+        );
+    }
     if render_s > 0.0 {
         render.samples_per_second = totals.samples as f64 / render_s;
         render.rays_per_second = totals.rays as f64 / render_s;
@@ -759,6 +790,15 @@ async fn drive(
     Ok(stats)
 }
 
+/// The log target of machine-readable events (`MAGG_EVENT ...` lines at debug level), which
+/// tests and scripts wait for instead of guessing with sleeps: `--log info,magg::event=debug`.
+pub const EVENT_TARGET: &str = "magg::event";
+
+/// A node's first pixels of a subscreen reached the frame buffer: it is rendering.
+fn event_first_pixels(node: NodeId, subscreen: u32) {
+    tracing::debug!(target: EVENT_TARGET, "MAGG_EVENT pixels node={node} subscreen={subscreen}");
+}
+
 /// Subscreens waiting for a node, and nodes waiting for a subscreen.
 /// How long the render may go without a pixel before the host says what it waits for.
 const STALL_REPORT: Duration = Duration::from_secs(10);
@@ -781,6 +821,7 @@ impl Work {
             let id = self.queue.pop_front().expect("not empty");
             let s = &mut subs[id as usize];
             s.node = Some(request.header.sender);
+            s.pixels_seen = false;
             s.finished_at = None;
             s.giving_back = false;
             let answer = Message::Subscreen { id, rect: s.rect };

@@ -177,7 +177,7 @@ pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderErr
     stats.seconds.write = write_s;
     stats.seconds.total = t0.elapsed().as_secs_f64();
     stats.set_trace(&trace);
-    stats.peak_rss_bytes = crate::stats::peak_rss_bytes();
+    stats.peak_rss_bytes = fabric::peak_rss_bytes();
     if trace.bad_samples > 0 {
         tracing::warn!(
             "{} samples were NaN or infinite and counted as black",

@@ -289,6 +289,11 @@ pub struct NodeStats {
     pub pixels: u64,
     pub samples: u64,
     pub rays: u64,
+    /// Rays by kind, and samples that came out NaN or infinite (counted as black).
+    pub camera_rays: u64,
+    pub secondary_rays: u64,
+    pub shadow_rays: u64,
+    pub bad_samples: u64,
     pub cache_hits: u64,
     pub cache_misses: u64,
     pub cache_evictions: u64,

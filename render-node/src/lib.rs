@@ -314,6 +314,10 @@ fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> No
         pixels: g(&w.pixels),
         samples: g(&w.samples),
         rays: g(&w.rays),
+        camera_rays: g(&w.camera_rays),
+        secondary_rays: g(&w.secondary_rays),
+        shadow_rays: g(&w.shadow_rays),
+        bad_samples: g(&w.bad_samples),
         cache_hits: cache.map_or(0, |c| g(&c.stats.hits)),
         cache_misses: cache.map_or(0, |c| g(&c.stats.misses)),
         cache_evictions: cache.map_or(0, |c| g(&c.stats.evictions)),
@@ -326,21 +330,9 @@ fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> No
         busy_s: render.saturating_sub(wait) as f64 * 1e-9,
         waiting_s: wait as f64 * 1e-9,
         idle_s: g(&w.idle_ns) as f64 * 1e-9,
-        peak_rss_bytes: peak_rss_bytes(),
+        peak_rss_bytes: fabric::peak_rss_bytes(),
         ..NodeStats::default()
     }
-}
-
-fn peak_rss_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
 }
 
 const TIMEOUT: Duration = Duration::from_secs(120);

@@ -52,6 +52,10 @@ pub struct WorkStats {
     pub pixels: AtomicU64,
     pub samples: AtomicU64,
     pub rays: AtomicU64,
+    pub camera_rays: AtomicU64,
+    pub secondary_rays: AtomicU64,
+    pub shadow_rays: AtomicU64,
+    pub bad_samples: AtomicU64,
     pub render_ns: AtomicU64,
     pub idle_ns: AtomicU64,
 }
@@ -132,6 +136,14 @@ impl Worker {
         self.stats
             .samples
             .fetch_add(trace_stats.samples, Ordering::Relaxed);
+        for (counter, n) in [
+            (&self.stats.camera_rays, trace_stats.camera_rays),
+            (&self.stats.secondary_rays, trace_stats.secondary_rays),
+            (&self.stats.shadow_rays, trace_stats.shadow_rays),
+            (&self.stats.bad_samples, trace_stats.bad_samples),
+        ] {
+            counter.fetch_add(n, Ordering::Relaxed);
+        }
         Ok(())
     }
 
