@@ -188,7 +188,11 @@ pub fn run(
         let pruning_rel_mse = if has_glass {
             let (tight, _, _) =
                 render(&scene, &data, &tight_settings, cfg.threads).map_err(fail)?;
-            Some(host::compare::compare(&img, &tight).map_err(fail)?.rel_mse)
+            Some(
+                host::compare::compare(&img, &tight)
+                    .map_err(|e| fail(e.to_string()))?
+                    .rel_mse,
+            )
         } else {
             None
         };

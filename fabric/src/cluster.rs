@@ -31,6 +31,8 @@ pub const DEFAULT_CLUSTER_ID: &str = "magg";
 pub enum ClusterError {
     #[error("{0}")]
     Io(String),
+    #[error(transparent)]
+    Dial(#[from] crate::node::DialError),
     #[error("{0}")]
     Handshake(#[from] handshake::HandshakeError),
     #[error("the host refused this node: {0}")]
@@ -275,10 +277,7 @@ pub async fn form(
                     // The host's own links.
                     for (peer, kind) in dials(&topology, 0) {
                         let addr = members[&peer].advertise.clone();
-                        fabric
-                            .dial(peer, &addr, kind)
-                            .await
-                            .map_err(ClusterError::Io)?;
+                        fabric.dial(peer, &addr, kind).await?;
                     }
                     host_links_dialed = true;
                 }
@@ -532,9 +531,7 @@ pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
         dialing.push(tokio::spawn(async move { f.dial(peer, &addr, kind).await }));
     }
     for d in dialing {
-        d.await
-            .map_err(|e| ClusterError::Io(e.to_string()))?
-            .map_err(ClusterError::Io)?;
+        d.await.map_err(|e| ClusterError::Io(e.to_string()))??;
     }
     let want_mesh = topology.neighbors(node).len();
     let want_direct = expected_direct(&topology, node).len();

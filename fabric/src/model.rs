@@ -37,15 +37,33 @@ pub enum LinkModelKind {
     Paper,
 }
 
+/// A link model name that is neither `none` nor `paper`.
+#[derive(Debug, thiserror::Error)]
+#[error("unknown link model {0:?} (none or paper)")]
+pub struct UnknownLinkModel(pub String);
+
 impl std::str::FromStr for LinkModelKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownLinkModel;
+    fn from_str(s: &str) -> Result<Self, UnknownLinkModel> {
         match s {
             "none" => Ok(LinkModelKind::None),
             "paper" => Ok(LinkModelKind::Paper),
-            o => Err(format!("unknown link model {o:?} (none or paper)")),
+            o => Err(UnknownLinkModel(o.to_string())),
         }
     }
+}
+
+/// A model parameter out of its range (the value as the file gave it, printed).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ModelError {
+    #[error("model.{name} must be a positive number, not {value}")]
+    NotPositive { name: &'static str, value: String },
+    #[error("model.{name} must be a number of at least 0, not {value}")]
+    Negative { name: &'static str, value: String },
+    #[error("model.packet_data_bytes must be between 1 and packet_bytes")]
+    PacketData,
+    #[error("model.gbus_count must be at least 1")]
+    NoGbus,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -89,7 +107,7 @@ impl Default for ModelParams {
 }
 
 impl ModelParams {
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), ModelError> {
         let pos = [
             ("time_scale", self.time_scale),
             ("link_bytes_per_us", self.link_bytes_per_us),
@@ -98,7 +116,10 @@ impl ModelParams {
         ];
         for (name, v) in pos {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("model.{name} must be a positive number, not {v}"));
+                return Err(ModelError::NotPositive {
+                    name,
+                    value: v.to_string(),
+                });
             }
         }
         let nonneg = [
@@ -110,16 +131,17 @@ impl ModelParams {
         ];
         for (name, v) in nonneg {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!(
-                    "model.{name} must be a number of at least 0, not {v}"
-                ));
+                return Err(ModelError::Negative {
+                    name,
+                    value: v.to_string(),
+                });
             }
         }
         if self.packet_data_bytes == 0 || self.packet_data_bytes > self.packet_bytes {
-            return Err("model.packet_data_bytes must be between 1 and packet_bytes".into());
+            return Err(ModelError::PacketData);
         }
         if self.gbus_count == 0 {
-            return Err("model.gbus_count must be at least 1".into());
+            return Err(ModelError::NoGbus);
         }
         Ok(())
     }

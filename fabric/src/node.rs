@@ -183,6 +183,23 @@ pub(crate) struct Inner {
     next_tag: std::sync::atomic::AtomicU32,
 }
 
+/// Why a connection to a peer could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum DialError {
+    #[error("cannot reach node {peer} at {addr}: {source}")]
+    Unreachable {
+        peer: NodeId,
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error("node {peer} at {addr}: {source}")]
+    Handshake {
+        peer: NodeId,
+        addr: String,
+        source: handshake::HandshakeError,
+    },
+}
+
 /// A handle on this process's fabric runtime. Cheap to clone.
 #[derive(Clone)]
 pub struct Fabric {
@@ -965,7 +982,12 @@ impl Fabric {
     }
 
     /// Dials `addr`, proves ourselves, and attaches the connection as `kind` to `peer`.
-    pub async fn dial(&self, peer: NodeId, addr: &str, kind: ConnectionKind) -> Result<(), String> {
+    pub async fn dial(
+        &self,
+        peer: NodeId,
+        addr: &str,
+        kind: ConnectionKind,
+    ) -> Result<(), DialError> {
         let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
         let mut delay = Duration::from_millis(20);
         let stream = loop {
@@ -976,7 +998,13 @@ impl Fabric {
                     tokio::time::sleep(delay).await;
                     delay = (delay * 2).min(Duration::from_millis(500));
                 }
-                Err(e) => return Err(format!("cannot reach node {peer} at {addr}: {e}")),
+                Err(source) => {
+                    return Err(DialError::Unreachable {
+                        peer,
+                        addr: addr.to_string(),
+                        source,
+                    });
+                }
             }
         };
         let _ = stream.set_nodelay(true);
@@ -996,7 +1024,11 @@ impl Fabric {
             identity,
         )
         .await
-        .map_err(|e| format!("node {peer} at {addr}: {e}"))?;
+        .map_err(|source| DialError::Handshake {
+            peer,
+            addr: addr.to_string(),
+            source,
+        })?;
         self.attach(peer, kind, reader, writer);
         Ok(())
     }

@@ -69,6 +69,8 @@ pub enum TopologyError {
     UnknownPreset(String),
     #[error("invalid topology: {0}")]
     Invalid(String),
+    #[error("invalid topology: {0}")]
+    Model(crate::model::ModelError),
 }
 
 #[derive(Deserialize, Serialize, Default)]
@@ -339,7 +341,7 @@ impl Topology {
         if let Some(lost) = reached.iter().position(|r| !r) {
             return invalid(format!("node {lost} cannot be reached from the host"));
         }
-        self.model.check().map_err(TopologyError::Invalid)?;
+        self.model.check().map_err(TopologyError::Model)?;
         self.adjacency = adjacency;
         Ok(())
     }

@@ -260,7 +260,7 @@ impl State {
             let prepared = tokio::task::spawn_blocking(move || prepare_scene(assembly)).await;
             let failure = match prepared {
                 Ok(Ok((scene, data))) => return self.place(scene, data).await,
-                Ok(Err(message)) => message,
+                Ok(Err(e)) => e.to_string(),
                 Err(e) => format!("preparing the scene failed: {e}"),
             };
             tracing::error!("fork node {}: {failure}", self.fabric.me());
@@ -657,20 +657,30 @@ impl State {
 }
 
 /// Decodes the assembled scene description and prepares it.
-fn prepare_scene(a: SceneAssembly) -> Result<(Scene, renderer::MemoryData), String> {
+/// Why the scene the host sent cannot be prepared.
+#[derive(Debug, thiserror::Error)]
+enum PrepareError {
+    #[error("scene parts hold {got} bytes, expected {expected}")]
+    Size { got: u64, expected: u64 },
+    #[error("the scene description does not decode: {0}")]
+    Decode(#[from] protocol::DecodeError),
+    #[error("the scene description is invalid: {0}")]
+    Invalid(#[from] renderer::scene::SceneError),
+}
+
+fn prepare_scene(a: SceneAssembly) -> Result<(Scene, renderer::MemoryData), PrepareError> {
     let mut bytes = Vec::with_capacity(a.total as usize);
     for p in a.parts.into_iter().flatten() {
         bytes.extend_from_slice(&p);
     }
     if bytes.len() as u64 != a.total {
-        return Err(format!(
-            "scene parts hold {} bytes, expected {}",
-            bytes.len(),
-            a.total
-        ));
+        return Err(PrepareError::Size {
+            got: bytes.len() as u64,
+            expected: a.total,
+        });
     }
-    let desc: SceneDesc = decode_value(&bytes).map_err(|e| e.to_string())?;
-    desc.validate().map_err(|e| e.to_string())?;
+    let desc: SceneDesc = decode_value(&bytes)?;
+    desc.validate()?;
     let opts = PrepareOptions {
         chunk_triangles: (a.chunk_triangles as usize).max(1),
     };

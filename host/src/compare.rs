@@ -13,13 +13,15 @@ pub struct Comparison {
     pub mean_rel_diff: [f64; 3],
 }
 
+/// Two images that cannot be compared pixel by pixel.
+#[derive(Debug, thiserror::Error)]
+#[error("image sizes differ: {0}x{1} vs {2}x{3}")]
+pub struct SizeMismatch(pub u32, pub u32, pub u32, pub u32);
+
 /// Compares `a` against the reference `b`. Errors if the sizes differ.
-pub fn compare(a: &Image, b: &Image) -> Result<Comparison, String> {
+pub fn compare(a: &Image, b: &Image) -> Result<Comparison, SizeMismatch> {
     if a.width != b.width || a.height != b.height {
-        return Err(format!(
-            "image sizes differ: {}x{} vs {}x{}",
-            a.width, a.height, b.width, b.height
-        ));
+        return Err(SizeMismatch(a.width, a.height, b.width, b.height));
     }
     let mut sum = 0f64;
     for (pa, pb) in a.pixels.iter().zip(&b.pixels) {

@@ -39,11 +39,16 @@ impl std::fmt::Debug for Secret {
     }
 }
 
+/// A cluster secret too short to be one.
+#[derive(Debug, thiserror::Error)]
+#[error("the cluster secret must be at least 8 characters")]
+pub struct SecretTooShort;
+
 impl Secret {
-    pub fn new(text: &str) -> Result<Secret, String> {
+    pub fn new(text: &str) -> Result<Secret, SecretTooShort> {
         let t = text.trim();
         if t.len() < 8 {
-            return Err("the cluster secret must be at least 8 characters".into());
+            return Err(SecretTooShort);
         }
         Ok(Secret(t.as_bytes().to_vec()))
     }

@@ -401,7 +401,9 @@ impl Retire for Tile {
 fn validate_chunk(rules: &ChunkRules, id: u32, words: Box<[u32]>) -> Result<Chunk, DataError> {
     let chunk =
         Chunk::from_words(words).map_err(|e| DataError::Corrupt(format!("chunk {id}: {e}")))?;
-    rules.check(id, &chunk).map_err(DataError::Corrupt)?;
+    rules
+        .check(id, &chunk)
+        .map_err(|e| DataError::Corrupt(e.to_string()))?;
     Ok(chunk)
 }
 

@@ -293,7 +293,7 @@ fn maybe_start(
             .name(format!("render-{t}"))
             .spawn(move || {
                 if let Err(e) = worker.run() {
-                    fail(&f, &e);
+                    fail(&f, &e.to_string());
                 }
             })
             .expect("spawn a rendering thread");

@@ -17,6 +17,30 @@ use renderer::{Scene, render::render_pixel, trace::Tracer};
 
 use crate::cache::{DemandCache, Reader};
 
+/// Why a rendering thread stopped before the host ran out of work.
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    #[error("asking the host for work: {0}")]
+    Ask(#[source] fabric::RequestError),
+    #[error("unexpected answer to a subscreen request: {0}")]
+    Answer(String),
+    #[error("rendering subscreen {id}: {source}")]
+    Render {
+        id: u32,
+        #[source]
+        source: RenderError,
+    },
+}
+
+/// What stops one subscreen: data that could not be had, or pixels that could not be sent.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error(transparent)]
+    Data(#[from] renderer::DataError),
+    #[error("sending pixels: {0}")]
+    Send(#[from] fabric::SendError),
+}
+
 /// A subscreen being rendered: rows `next_row..end_row` (relative to `rect`) are still to do.
 /// The host may ask to have the tail back; `end_row` then moves up.
 pub struct Active {
@@ -79,7 +103,7 @@ const ASK_TIMEOUT: Duration = Duration::from_secs(7 * 24 * 3600);
 
 impl Worker {
     /// Renders subscreens until the host has no more; returns an error message on failure.
-    pub fn run(&self) -> Result<(), String> {
+    pub fn run(&self) -> Result<(), WorkerError> {
         let mut reader = self.cache.reader();
         let mut trace_stats = renderer::trace::TraceStats::default();
         let mut finished = None;
@@ -98,18 +122,14 @@ impl Worker {
                     )
                     .await
                 })
-                .map_err(|e| format!("asking the host for work: {e}"))?;
+                .map_err(WorkerError::Ask)?;
             self.stats
                 .idle_ns
                 .fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
             let (id, rect) = match reply.message() {
                 Ok(Message::Subscreen { id, rect }) => (id, rect),
                 Ok(Message::NoMoreWork) => break,
-                other => {
-                    return Err(format!(
-                        "unexpected answer to a subscreen request: {other:?}"
-                    ));
-                }
+                other => return Err(WorkerError::Answer(format!("{other:?}"))),
             };
             let t1 = Instant::now();
             let active = Arc::new(Active {
@@ -123,7 +143,7 @@ impl Worker {
                 .insert(id, active.clone());
             let result = self.render_subscreen(&mut reader, id, &active, &mut trace_stats);
             self.active.lock().expect("active lock").remove(&id);
-            result.map_err(|e| format!("rendering subscreen {id}: {e}"))?;
+            result.map_err(|source| WorkerError::Render { id, source })?;
             self.stats
                 .render_ns
                 .fetch_add(t1.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -153,7 +173,7 @@ impl Worker {
         id: u32,
         active: &Active,
         trace_stats: &mut renderer::trace::TraceStats,
-    ) -> Result<(), String> {
+    ) -> Result<(), RenderError> {
         let rect = active.rect;
         let settings = &self.job.settings;
         let mut line: Vec<[f32; 3]> = Vec::with_capacity(rect.width as usize);
@@ -170,8 +190,7 @@ impl Worker {
             let tracer = Tracer::new(&self.scene, &*reader);
             for x in rect.x..rect.x + rect.width {
                 reader.tick();
-                let px = render_pixel(&tracer, &self.job.camera, settings, x, y, trace_stats)
-                    .map_err(|e| e.to_string())?;
+                let px = render_pixel(&tracer, &self.job.camera, settings, x, y, trace_stats)?;
                 line.push(px);
             }
             let t = tracer.stats();
@@ -185,9 +204,7 @@ impl Worker {
                 x: rect.x,
                 width: rect.width,
             };
-            self.fabric
-                .send(self.fork, &msg, words, 0)
-                .map_err(|e| e.to_string())?;
+            self.fabric.send(self.fork, &msg, words, 0)?;
             self.stats.rows.fetch_add(1, Ordering::Relaxed);
             self.stats
                 .pixels

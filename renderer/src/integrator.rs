@@ -31,15 +31,18 @@ pub enum IntegratorKind {
     Whitted,
 }
 
+/// An integrator name magg does not have.
+#[derive(Debug, thiserror::Error)]
+#[error("unknown integrator {0:?} (expected path or whitted)")]
+pub struct UnknownIntegrator(pub String);
+
 impl std::str::FromStr for IntegratorKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = UnknownIntegrator;
+    fn from_str(s: &str) -> Result<Self, UnknownIntegrator> {
         match s {
             "path" => Ok(IntegratorKind::Path),
             "whitted" => Ok(IntegratorKind::Whitted),
-            other => Err(format!(
-                "unknown integrator {other:?} (expected path or whitted)"
-            )),
+            other => Err(UnknownIntegrator(other.to_string())),
         }
     }
 }

@@ -167,30 +167,58 @@ impl ChunkRules {
     }
 
     /// Whether `chunk` may be used as chunk `id` of this scene.
-    pub fn check(&self, id: u32, chunk: &Chunk) -> Result<(), String> {
+    pub fn check(&self, id: u32, chunk: &Chunk) -> Result<(), ChunkMismatch> {
         let h = chunk.header();
         let Some(&(material, tris)) = self.chunks.get(id as usize) else {
-            return Err(format!("chunk {id} is not in the scene"));
+            return Err(ChunkMismatch::NotInScene { id });
         };
         if h.chunk_id != id {
-            return Err(format!("asked for chunk {id}, got chunk {}", h.chunk_id));
+            return Err(ChunkMismatch::OtherChunk {
+                id,
+                got: h.chunk_id,
+            });
         }
         if (h.material, h.tri_count) != (material, tris) {
-            return Err(format!(
-                "chunk {id} has material {} and {} triangles; the scene says {material} and {tris}",
-                h.material, h.tri_count
-            ));
+            return Err(ChunkMismatch::Shape {
+                id,
+                material: h.material,
+                tris: h.tri_count,
+                scene_material: material,
+                scene_tris: tris,
+            });
         }
         if h.light_base != crate::chunk::NO_LIGHT
             && h.light_base as u64 + h.tri_count as u64 > self.lights
         {
-            return Err(format!(
-                "chunk {id}'s triangles are lights {}.. of {}",
-                h.light_base, self.lights
-            ));
+            return Err(ChunkMismatch::Lights {
+                id,
+                base: h.light_base,
+                lights: self.lights,
+            });
         }
         Ok(())
     }
+}
+
+/// How a chunk from elsewhere disagrees with the scene it is meant for.
+#[derive(Debug, thiserror::Error)]
+pub enum ChunkMismatch {
+    #[error("chunk {id} is not in the scene")]
+    NotInScene { id: u32 },
+    #[error("asked for chunk {id}, got chunk {got}")]
+    OtherChunk { id: u32, got: u32 },
+    #[error(
+        "chunk {id} has material {material} and {tris} triangles; the scene says {scene_material} and {scene_tris}"
+    )]
+    Shape {
+        id: u32,
+        material: u32,
+        tris: u32,
+        scene_material: u32,
+        scene_tris: u32,
+    },
+    #[error("chunk {id}'s triangles are lights {base}.. of {lights}")]
+    Lights { id: u32, base: u32, lights: u64 },
 }
 
 /// The top-level tree over chunk bounds: its compact form (sent with the header) and, once

@@ -114,7 +114,7 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     }
     let blob = raw.blob.clone();
     let json = raw.document.into_json();
-    precheck_indices(&json).map_err(&parse)?;
+    precheck_indices(&json).map_err(|e| parse(e.to_string()))?;
     // The gltf crate's validation indexes some arrays before checking them; the check above
     // covers the cases known to panic, and this stops any other at the library boundary.
     let validated = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
@@ -301,9 +301,21 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     })
 }
 
+/// A primitive that names an accessor the file does not have.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "meshes[{mesh}].primitives[{primitive}] uses accessor {accessor}, but the file has {accessors}"
+)]
+struct MissingAccessor {
+    mesh: usize,
+    primitive: usize,
+    accessor: usize,
+    accessors: usize,
+}
+
 /// Index checks the `gltf` crate's own validation relies on before it makes them itself:
 /// every attribute, index and morph target accessor of every primitive must exist.
-fn precheck_indices(json: &gltf::json::Root) -> Result<(), String> {
+fn precheck_indices(json: &gltf::json::Root) -> Result<(), MissingAccessor> {
     let accessors = json.accessors.len();
     for (m, mesh) in json.meshes.iter().enumerate() {
         for (p, prim) in mesh.primitives.iter().enumerate() {
@@ -318,9 +330,12 @@ fn precheck_indices(json: &gltf::json::Root) -> Result<(), String> {
                 );
             }
             if let Some(&bad) = used.iter().find(|&&a| a >= accessors) {
-                return Err(format!(
-                    "meshes[{m}].primitives[{p}] uses accessor {bad}, but the file has {accessors}"
-                ));
+                return Err(MissingAccessor {
+                    mesh: m,
+                    primitive: p,
+                    accessor: bad,
+                    accessors,
+                });
             }
         }
     }

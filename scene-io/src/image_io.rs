@@ -176,7 +176,7 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
                 path: path.into(),
                 source,
             })?;
-            decode_pfm(&bytes).map_err(decode)
+            decode_pfm(&bytes).map_err(|e| decode(e.to_string()))
         }
         Format::Png => {
             let img = image::open(path)
@@ -217,8 +217,27 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     }
 }
 
+/// What is wrong with a PFM file.
+#[derive(Debug, thiserror::Error)]
+pub enum PfmError {
+    #[error("truncated header")]
+    TruncatedHeader,
+    #[error("header is not text")]
+    HeaderNotText,
+    #[error("header too long")]
+    HeaderTooLong,
+    #[error("bad magic {0:?}")]
+    Magic(String),
+    #[error("bad {0}")]
+    Field(&'static str),
+    #[error("image too large")]
+    TooLarge,
+    #[error("expected {0} bytes of pixels after the header")]
+    TruncatedPixels(usize),
+}
+
 /// Parses a PFM file (colour "PF" or greyscale "Pf", either byte order).
-pub fn decode_pfm(bytes: &[u8]) -> Result<Image, String> {
+pub fn decode_pfm(bytes: &[u8]) -> Result<Image, PfmError> {
     // Header: three whitespace-separated tokens after the magic, then one whitespace byte.
     let mut tokens = Vec::new();
     let mut i = 0;
@@ -231,34 +250,32 @@ pub fn decode_pfm(bytes: &[u8]) -> Result<Image, String> {
             i += 1;
         }
         if start == i {
-            return Err("truncated header".into());
+            return Err(PfmError::TruncatedHeader);
         }
         tokens.push(
             std::str::from_utf8(&bytes[start..i])
-                .map_err(|_| "header is not text")?
+                .map_err(|_| PfmError::HeaderNotText)?
                 .to_string(),
         );
         if start > 64 {
-            return Err("header too long".into());
+            return Err(PfmError::HeaderTooLong);
         }
     }
     i += 1;
     let channels = match tokens[0].as_str() {
         "PF" => 3,
         "Pf" => 1,
-        m => return Err(format!("bad magic {m:?}")),
+        m => return Err(PfmError::Magic(m.to_string())),
     };
-    let w: u32 = tokens[1].parse().map_err(|_| "bad width")?;
-    let h: u32 = tokens[2].parse().map_err(|_| "bad height")?;
-    let scale: f32 = tokens[3].parse().map_err(|_| "bad scale")?;
+    let w: u32 = tokens[1].parse().map_err(|_| PfmError::Field("width"))?;
+    let h: u32 = tokens[2].parse().map_err(|_| PfmError::Field("height"))?;
+    let scale: f32 = tokens[3].parse().map_err(|_| PfmError::Field("scale"))?;
     let little = scale < 0.0;
     let n = (w as usize)
         .checked_mul(h as usize)
         .and_then(|n| n.checked_mul(channels * 4))
-        .ok_or("image too large")?;
-    let data = bytes
-        .get(i..i + n)
-        .ok_or_else(|| format!("expected {n} bytes of pixels after the header"))?;
+        .ok_or(PfmError::TooLarge)?;
+    let data = bytes.get(i..i + n).ok_or(PfmError::TruncatedPixels(n))?;
     let mut pixels = vec![[0f32; 3]; w as usize * h as usize];
     for (k, c) in data.chunks_exact(4).enumerate() {
         let arr = [c[0], c[1], c[2], c[3]];
