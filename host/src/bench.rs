@@ -66,10 +66,10 @@ pub fn bumpy_sphere(triangles: usize) -> MeshData {
     m
 }
 
-fn big_scene(config: &BenchConfig) -> Result<(String, SceneDesc), String> {
+fn big_scene(config: &BenchConfig) -> Result<(String, SceneDesc), crate::LabError> {
     match &config.mesh {
         Some(path) => {
-            let loaded = scene_io::load_gltf(path).map_err(|e| e.to_string())?;
+            let loaded = scene_io::load_gltf(path)?;
             Ok((path.display().to_string(), loaded.desc))
         }
         None => {
@@ -111,7 +111,7 @@ fn trace_rate(scene: &Scene, data: &MemoryData, rays: &[Ray]) -> (f64, f64) {
     )
 }
 
-pub fn run(config: &BenchConfig) -> Result<BenchReport, String> {
+pub fn run(config: &BenchConfig) -> Result<BenchReport, crate::LabError> {
     let (name, desc) = big_scene(config)?;
     let start = Instant::now();
     let (scene, data) = renderer::prepare(
@@ -157,7 +157,7 @@ pub fn run(config: &BenchConfig) -> Result<BenchReport, String> {
     };
     let cornell = match &config.cornell {
         Some(path) if path.exists() => {
-            let loaded = scene_io::load_gltf(path).map_err(|e| e.to_string())?;
+            let loaded = scene_io::load_gltf(path)?;
             let (scene, data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
             let settings = RenderSettings {
                 width: 128,
@@ -166,7 +166,9 @@ pub fn run(config: &BenchConfig) -> Result<BenchReport, String> {
                 integrator: IntegratorKind::Path,
                 ..RenderSettings::default()
             };
-            let camera = scene.camera(None, 1.0).map_err(|e| e.to_string())?;
+            let camera = scene
+                .camera(None, 1.0)
+                .map_err(|e| crate::LabError::Camera(e.to_string()))?;
             let start = Instant::now();
             let (_, stats) = render_image(
                 &scene,
@@ -177,8 +179,7 @@ pub fn run(config: &BenchConfig) -> Result<BenchReport, String> {
                 16,
                 &AtomicBool::new(false),
                 &|_, _| {},
-            )
-            .map_err(|e| e.to_string())?;
+            )?;
             Some(stats.samples as f64 / start.elapsed().as_secs_f64())
         }
         _ => None,
@@ -202,8 +203,8 @@ pub fn run(config: &BenchConfig) -> Result<BenchReport, String> {
 
 /// Samples per second of a scene as it is, and with every texture replaced by a constant
 /// factor of its mean colour (same geometry, same light transport, no texture reads).
-pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64), String> {
-    let loaded = scene_io::load_gltf(path).map_err(|e| e.to_string())?;
+pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64), crate::LabError> {
+    let loaded = scene_io::load_gltf(path)?;
     let mut textured = loaded.desc;
     // The same world around both, whatever their emission decides by default.
     textured.environment = Some(renderer::light::Environment::sky());
@@ -231,9 +232,11 @@ pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64)
         m.transmission_tex = None;
     }
     plain.textures.clear();
-    let rate = |desc: renderer::SceneDesc| -> Result<f64, String> {
+    let rate = |desc: renderer::SceneDesc| -> Result<f64, crate::LabError> {
         let (scene, data) = renderer::prepare(desc, &PrepareOptions::default());
-        let camera = scene.camera(None, 1.0).map_err(|e| e.to_string())?;
+        let camera = scene
+            .camera(None, 1.0)
+            .map_err(|e| crate::LabError::Camera(e.to_string()))?;
         let settings = RenderSettings {
             width: 128,
             height: 128,
@@ -250,8 +253,7 @@ pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64)
             16,
             &AtomicBool::new(false),
             &|_, _| {},
-        )
-        .map_err(|e| e.to_string())?;
+        )?;
         Ok(stats.samples as f64 / start.elapsed().as_secs_f64())
     };
     let a = rate(textured)?;

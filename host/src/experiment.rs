@@ -385,7 +385,7 @@ fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), Experiment
         false,
         "Fig. 1.5: average transfer time, one render node active",
     )
-    .map_err(ExperimentError::Failed)?;
+    .map_err(|e| ExperimentError::Failed(e.to_string()))?;
     let many = config.out_dir.join("fig1.6-many-nodes.png");
     crate::plot::transfers_png(
         &many,
@@ -393,7 +393,7 @@ fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), Experiment
         true,
         "Fig. 1.6: average transfer time, many render nodes active",
     )
-    .map_err(ExperimentError::Failed)?;
+    .map_err(|e| ExperimentError::Failed(e.to_string()))?;
     Ok(())
 }
 

@@ -126,7 +126,7 @@ pub fn render_entry(path: &Path, c: &GalleryConfig) -> Entry {
 }
 
 /// Lays the entries out on a sheet and writes it as PNG.
-pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), String> {
+pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), crate::LabError> {
     let cols = c.columns.max(1);
     let rows = (entries.len() as u32).div_ceil(cols).max(1);
     let label = 34;
@@ -161,7 +161,7 @@ pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), String> {
             let style = ("sans-serif", 13).into_font().color(&WHITE);
             let name: String = e.name.chars().take(26).collect();
             root.draw_text(&name, &style, (cx, cy + c.size as i32 + 2))
-                .map_err(|e| e.to_string())?;
+                .map_err(crate::LabError::draw)?;
             let mut note = e.note.clone();
             if e.bad_samples > 0 {
                 note = format!("{} NaN/inf samples! {note}", e.bad_samples);
@@ -175,19 +175,22 @@ pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), String> {
                 let small = ("sans-serif", 11).into_font().color(&color);
                 let note: String = note.chars().take(32).collect();
                 root.draw_text(&note, &small, (cx, cy + c.size as i32 + 17))
-                    .map_err(|e| e.to_string())?;
+                    .map_err(crate::LabError::draw)?;
             }
         }
-        root.present().map_err(|e| e.to_string())?;
+        root.present().map_err(crate::LabError::draw)?;
     }
     crate::plot::write_png(&c.output, w, h, &buf)
 }
 
 /// Renders every scene of the folder and writes the sheet; returns the entries.
-pub fn gallery(c: &GalleryConfig, progress: &dyn Fn(&str)) -> Result<Vec<Entry>, String> {
-    let files = scene_files(&c.dir).map_err(|e| format!("{}: {e}", c.dir.display()))?;
+pub fn gallery(c: &GalleryConfig, progress: &dyn Fn(&str)) -> Result<Vec<Entry>, crate::LabError> {
+    let files = scene_files(&c.dir).map_err(|source| crate::LabError::Folder {
+        path: c.dir.clone(),
+        source,
+    })?;
     if files.is_empty() {
-        return Err(format!("{}: no .gltf or .glb files", c.dir.display()));
+        return Err(crate::LabError::NoScenes(c.dir.clone()));
     }
     let mut entries = Vec::new();
     for f in &files {

@@ -38,7 +38,7 @@ pub fn ensure_font() -> bool {
 }
 
 /// Encodes an RGB buffer as PNG, atomically.
-pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), String> {
+pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), crate::LabError> {
     let mut out = Vec::new();
     image::ImageEncoder::write_image(
         image::codecs::png::PngEncoder::new(&mut out),
@@ -46,9 +46,8 @@ pub fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(),
         width,
         height,
         image::ExtendedColorType::Rgb8,
-    )
-    .map_err(|e| e.to_string())?;
-    scene_io::image_io::write_atomic(path, &out).map_err(|e| e.to_string())
+    )?;
+    Ok(scene_io::image_io::write_atomic(path, &out)?)
 }
 
 /// Line plot of one or more series: `(label, points)`, log-log.
@@ -58,20 +57,20 @@ pub fn log_log_png(
     x_label: &str,
     y_label: &str,
     series: &[(String, Vec<(f64, f64)>)],
-) -> Result<(), String> {
+) -> Result<(), crate::LabError> {
     let (w, h) = (1200u32, 800u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
     let labels = ensure_font();
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        root.fill(&WHITE).map_err(crate::LabError::draw)?;
         let pts: Vec<(f64, f64)> = series
             .iter()
             .flat_map(|s| s.1.iter().copied())
             .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.1.is_finite())
             .collect();
         if pts.is_empty() {
-            return Err("nothing to plot".into());
+            return Err(crate::LabError::NothingToPlot);
         }
         let (x0, x1) = pts
             .iter()
@@ -92,25 +91,25 @@ pub fn log_log_png(
                 (x0 * 0.8..x1 * 1.25).log_scale(),
                 (y0 * 0.8..y1 * 1.25).log_scale(),
             )
-            .map_err(|e| e.to_string())?;
+            .map_err(crate::LabError::draw)?;
         let mut mesh = chart.configure_mesh();
         if labels {
             mesh.x_desc(x_label).y_desc(y_label);
         } else {
             mesh.disable_x_axis().disable_y_axis();
         }
-        mesh.draw().map_err(|e| e.to_string())?;
+        mesh.draw().map_err(crate::LabError::draw)?;
         for (i, (name, points)) in series.iter().enumerate() {
             let color = Palette99::pick(i).to_rgba();
             chart
                 .draw_series(points.iter().map(|&p| Circle::new(p, 4, color.filled())))
-                .map_err(|e| e.to_string())?;
+                .map_err(crate::LabError::draw)?;
             let s = chart
                 .draw_series(LineSeries::new(
                     points.iter().copied(),
                     color.stroke_width(2),
                 ))
-                .map_err(|e| e.to_string())?;
+                .map_err(crate::LabError::draw)?;
             if labels {
                 s.label(name.clone()).legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
@@ -125,16 +124,21 @@ pub fn log_log_png(
                 .label_font(("sans-serif", 16))
                 .position(SeriesLabelPosition::UpperLeft)
                 .draw()
-                .map_err(|e| e.to_string())?;
+                .map_err(crate::LabError::draw)?;
         }
-        root.present().map_err(|e| e.to_string())?;
+        root.present().map_err(crate::LabError::draw)?;
     }
     write_png(path, w, h, &buf)
 }
 
 /// Figure 1.5 (one node active) or 1.6 (many at once): mean transfer time against data
 /// size, a line per (who was active, transfer kind).
-pub fn transfers_png(path: &Path, r: &LinksReport, many: bool, title: &str) -> Result<(), String> {
+pub fn transfers_png(
+    path: &Path,
+    r: &LinksReport,
+    many: bool,
+    title: &str,
+) -> Result<(), crate::LabError> {
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for t in r
         .transfers

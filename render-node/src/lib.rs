@@ -176,17 +176,30 @@ pub async fn run(config: Config) -> Result<(), RenderNodeError> {
     }
 }
 
+/// Why a scene header from the fork node cannot be used.
+#[derive(Debug, thiserror::Error)]
+enum HeaderError {
+    #[error("shorter than it says")]
+    Short,
+    #[error(transparent)]
+    Decode(#[from] protocol::DecodeError),
+    #[error(transparent)]
+    Invalid(#[from] renderer::scene::SceneError),
+    #[error("the address table does not match the scene")]
+    AddressTable,
+}
+
 fn decode_header(
     frame: &Frame,
     len: u64,
     chunk_owner: &[NodeId],
     tile_owner: &[NodeId],
-) -> Result<Scene, String> {
-    let bytes = words_to_bytes(&frame.data, len as usize).ok_or("shorter than it says")?;
-    let scene: Scene = decode_value(bytes).map_err(|e| e.to_string())?;
-    scene.validate().map_err(|e| e.to_string())?;
+) -> Result<Scene, HeaderError> {
+    let bytes = words_to_bytes(&frame.data, len as usize).ok_or(HeaderError::Short)?;
+    let scene: Scene = decode_value(bytes)?;
+    scene.validate()?;
     if chunk_owner.len() != scene.chunks.len() || tile_owner.len() != scene.tile_count as usize {
-        return Err("the address table does not match the scene".into());
+        return Err(HeaderError::AddressTable);
     }
     Ok(scene)
 }
