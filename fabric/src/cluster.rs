@@ -87,7 +87,7 @@ pub fn refuse_late_joiner(delivery: Delivery, reason: String) {
     };
     tracing::warn!("refused a {} that asked to join: {reason}", identity.role);
     tokio::spawn(async move {
-        reader.frame_deadline = handshake::HANDSHAKE_TIMEOUT;
+        reader.frame_timeout = handshake::HANDSHAKE_TIMEOUT;
         // Its registration comes first; the answer follows it.
         let _ = tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, reader.read()).await;
         let _ = writer
@@ -182,7 +182,7 @@ pub async fn form(
                 }
                 let tx = reg_tx.clone();
                 tokio::spawn(async move {
-                    reader.frame_deadline = handshake::HANDSHAKE_TIMEOUT;
+                    reader.frame_timeout = handshake::HANDSHAKE_TIMEOUT;
                     let read =
                         tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, reader.read()).await;
                     if let Ok(Ok(frame)) = read
@@ -581,7 +581,7 @@ pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
 /// for the host to hang up first, so that whoever watches the processes (a shell, compose)
 /// sees the host end before its nodes and takes the host's exit status as the cluster's.
 pub async fn leave(fabric: &Fabric) {
-    fabric.close();
+    fabric.begin_shutdown();
     let until = tokio::time::Instant::now() + Duration::from_secs(5);
     while fabric.has_control(0) && tokio::time::Instant::now() < until {
         tokio::time::sleep(Duration::from_millis(10)).await;

@@ -822,7 +822,7 @@ impl Fabric {
             }
         });
         // Once the handshake is over, a frame may take as long as a big transfer needs.
-        reader.frame_deadline = Duration::from_secs(60);
+        reader.frame_timeout = Duration::from_secs(60);
         reader.idle_deadline = Some(match kind {
             ConnectionKind::Control => CONTROL_SILENCE_LIMIT,
             _ => LINK_SILENCE_LIMIT,
@@ -927,7 +927,7 @@ impl Fabric {
         let _ = stream.set_nodelay(true);
         let (r, w) = stream.into_split();
         let mut reader = FrameReader::new(r);
-        reader.frame_deadline = handshake::HANDSHAKE_TIMEOUT;
+        reader.frame_timeout = handshake::HANDSHAKE_TIMEOUT;
         let mut writer = FrameWriter::new(w);
         let identity = match handshake::answer(
             &mut reader,
@@ -1034,7 +1034,7 @@ impl Fabric {
     }
 
     /// Stops reporting lost connections (the process is shutting down on purpose).
-    pub fn close(&self) {
+    pub fn begin_shutdown(&self) {
         self.inner.closing.store(true, Ordering::Relaxed);
         self.inner.timer.stop();
     }
@@ -1042,7 +1042,7 @@ impl Fabric {
     /// Closes and drops every connection: peers see each one end once the frames queued on
     /// it are written.
     pub fn hang_up(&self) {
-        self.close();
+        self.begin_shutdown();
         self.inner.mesh.lock().expect("lock").clear();
         self.inner.direct.lock().expect("lock").clear();
         self.inner.control.lock().expect("lock").clear();

@@ -130,7 +130,7 @@ pub async fn run(config: Config) -> Result<(), ForkError> {
                 ..
             } => {
                 tracing::error!("fork node {}: lost the host; exiting", fabric.me());
-                fabric.close();
+                fabric.begin_shutdown();
                 return Err(ForkError::HostLost);
             }
             Delivery::Lost { peer, kind, reason } => tracing::warn!(

@@ -176,7 +176,7 @@ impl Cluster {
             // Nodes elsewhere see the host's connections end when this process exits, after
             // the host, so that whoever watches (compose) takes the host's exit status.
             None => {
-                self.formed.fabric.close();
+                self.formed.fabric.begin_shutdown();
                 true
             }
         }

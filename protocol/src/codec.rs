@@ -29,7 +29,7 @@ pub enum ReadError {
 pub struct FrameReader<R> {
     inner: R,
     /// Time a frame may take to arrive once its first byte has.
-    pub frame_deadline: Duration,
+    pub frame_timeout: Duration,
     /// Time the peer may stay silent between frames (`None`: forever). Peers that send
     /// heartbeats set this to notice a peer that vanished without closing the connection.
     pub idle_deadline: Option<Duration>,
@@ -41,7 +41,7 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
     pub fn new(inner: R) -> FrameReader<R> {
         FrameReader {
             inner,
-            frame_deadline: Duration::from_secs(30),
+            frame_timeout: Duration::from_secs(30),
             idle_deadline: None,
             bytes_read: 0,
         }
@@ -59,7 +59,7 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         if n == 0 {
             return Err(ReadError::Closed);
         }
-        let deadline = self.frame_deadline;
+        let deadline = self.frame_timeout;
         match tokio::time::timeout(deadline, self.read_rest(first[0])).await {
             Ok(r) => r,
             Err(_) => Err(ReadError::Timeout(deadline)),
@@ -160,7 +160,7 @@ mod tests {
         let (mut a, b) = tokio::io::duplex(1 << 16);
         a.write_all(b"MAG").await.unwrap();
         let mut r = FrameReader::new(b);
-        r.frame_deadline = Duration::from_millis(50);
+        r.frame_timeout = Duration::from_millis(50);
         assert!(matches!(r.read().await, Err(ReadError::Timeout(_))));
     }
 

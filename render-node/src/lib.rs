@@ -164,7 +164,7 @@ pub async fn run(config: Config) -> Result<(), RenderNodeError> {
                 ..
             } => {
                 tracing::error!("render node {}: lost the host; exiting", fabric.me());
-                fabric.close();
+                fabric.begin_shutdown();
                 return Err(RenderNodeError::HostLost);
             }
             Delivery::Lost { peer, kind, reason } => tracing::warn!(
