@@ -45,14 +45,8 @@ pub enum DataId {
     },
 }
 
-/// A rectangle of pixels, (x, y) its top-left corner.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Rect {
-    pub x: u32,
-    pub y: u32,
-    pub width: u32,
-    pub height: u32,
-}
+/// Subscreens travel as the renderer's own rectangles (protocol may carry renderer types).
+pub use renderer::Rect;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Message {
