@@ -120,32 +120,44 @@ impl std::fmt::Debug for Delivery {
     }
 }
 
-/// Counters of what passed through this process.
-#[derive(Default, Debug)]
-pub struct Counters {
-    pub frames_sent: AtomicU64,
-    pub frames_forwarded: AtomicU64,
-    pub bytes_forwarded: AtomicU64,
-    pub frames_delivered: AtomicU64,
-    pub bytes_mesh_out: AtomicU64,
-    pub bytes_direct_out: AtomicU64,
-    pub frames_dropped: AtomicU64,
-    pub connections_refused: AtomicU64,
-    /// Frames sent on a direct or control connection because the mesh had no route.
-    pub frames_around_mesh: AtomicU64,
+/// Declares the counters once: the live atomic set (`Counters`), its plain copy
+/// (`CounterSnapshot`) and the copying between them, so a counter cannot be added to one
+/// and forgotten in the other.
+macro_rules! counters {
+    ($($(#[$doc:meta])* $name:ident,)*) => {
+        /// Counters of what passed through this process.
+        #[derive(Default, Debug)]
+        pub struct Counters {
+            $($(#[$doc])* pub $name: AtomicU64,)*
+        }
+
+        /// The counters at one moment.
+        #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+        pub struct CounterSnapshot {
+            $($(#[$doc])* pub $name: u64,)*
+        }
+
+        impl Counters {
+            fn snapshot(&self) -> CounterSnapshot {
+                CounterSnapshot {
+                    $($name: self.$name.load(Ordering::Relaxed),)*
+                }
+            }
+        }
+    };
 }
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct CounterSnapshot {
-    pub frames_sent: u64,
-    pub frames_forwarded: u64,
-    pub bytes_forwarded: u64,
-    pub frames_delivered: u64,
-    pub bytes_mesh_out: u64,
-    pub bytes_direct_out: u64,
-    pub frames_dropped: u64,
-    pub connections_refused: u64,
-    pub frames_around_mesh: u64,
+counters! {
+    frames_sent,
+    frames_forwarded,
+    bytes_forwarded,
+    frames_delivered,
+    bytes_mesh_out,
+    bytes_direct_out,
+    frames_dropped,
+    connections_refused,
+    /// Frames sent on a direct or control connection because the mesh had no route.
+    frames_around_mesh,
 }
 
 /// A request waiting for its answer.
@@ -283,19 +295,7 @@ impl Fabric {
     }
 
     pub fn counters(&self) -> CounterSnapshot {
-        let c = &self.inner.counters;
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        CounterSnapshot {
-            frames_sent: g(&c.frames_sent),
-            frames_forwarded: g(&c.frames_forwarded),
-            bytes_forwarded: g(&c.bytes_forwarded),
-            frames_delivered: g(&c.frames_delivered),
-            bytes_mesh_out: g(&c.bytes_mesh_out),
-            bytes_direct_out: g(&c.bytes_direct_out),
-            frames_dropped: g(&c.frames_dropped),
-            connections_refused: g(&c.connections_refused),
-            frames_around_mesh: g(&c.frames_around_mesh),
-        }
+        self.inner.counters.snapshot()
     }
 
     /// Records whether `peer` shares this machine's monotonic clock.
