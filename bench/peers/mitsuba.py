@@ -594,7 +594,8 @@ def magg_depth_note(args) -> str:
     """magg's path length settings, read from its --help and its integrator's source."""
     depth = None
     r = subprocess.run([str(args.magg), "render", "--help"], capture_output=True, text=True)
-    m = re.search(r"--max-depth[^\[]*\[default:\s*(\d+)\]", r.stdout, re.S)
+    # "[default: 64]", or "[default: 64 for path, 16 for whitted]": the path tracer's.
+    m = re.search(r"--max-depth[^\[]*\[default:\s*(\d+)", r.stdout, re.S)
     if m:
         depth = m.group(1)
     extra = shlex.split(args.magg_args)
