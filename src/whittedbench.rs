@@ -8,11 +8,7 @@
 //! what the defaults' pruning costs. Last, a deliberately hostile scene: a hundred nested
 //! glass shells.
 
-use std::{
-    path::{Path, PathBuf},
-    sync::atomic::AtomicBool,
-    time::Instant,
-};
+use std::{path::PathBuf, sync::atomic::AtomicBool, time::Instant};
 
 use renderer::{
     Image, IntegratorKind, MemoryData, PrepareOptions, RenderSettings, Scene,
@@ -75,28 +71,6 @@ pub enum WhittedBenchError {
     Render { scene: String, reason: String },
 }
 
-/// The glTF files under `root`, sorted.
-fn scene_files(root: &Path) -> Result<Vec<PathBuf>, WhittedBenchError> {
-    let mut out = Vec::new();
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(dir) = stack.pop() {
-        let entries = std::fs::read_dir(&dir).map_err(|source| WhittedBenchError::Folder {
-            path: dir.clone(),
-            source,
-        })?;
-        for e in entries.flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if matches!(p.extension().and_then(|e| e.to_str()), Some("gltf" | "glb")) {
-                out.push(p);
-            }
-        }
-    }
-    out.sort();
-    Ok(out)
-}
-
 fn render(
     scene: &Scene,
     data: &MemoryData,
@@ -130,7 +104,11 @@ pub fn run(
     cfg: &WhittedConfig,
     progress: &dyn Fn(&str),
 ) -> Result<WhittedReport, WhittedBenchError> {
-    let files = scene_files(&cfg.scenes)?;
+    let files =
+        host::gallery::scene_files(&cfg.scenes).map_err(|source| WhittedBenchError::Folder {
+            path: cfg.scenes.clone(),
+            source,
+        })?;
     if files.is_empty() {
         return Err(WhittedBenchError::NoScenes(cfg.scenes.clone()));
     }

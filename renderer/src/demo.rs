@@ -134,16 +134,7 @@ pub fn demo_scene() -> SceneDesc {
         roughness: 0.0,
         ..Material::default()
     };
-    let glass = Material {
-        name: "glass".into(),
-        base_color: Vec4::ONE,
-        metallic: 0.0,
-        roughness: 0.0,
-        transmission: 1.0,
-        ior: 1.5,
-        thickness: 1.0,
-        ..Material::default()
-    };
+    let glass = Material::glass("glass");
     let materials = vec![white, red, green, floor, light, mirror, glass];
     let (w, r, g, f, l, mi, gl) = (0, 1, 2, 3, 4, 5, 6);
 
@@ -222,16 +213,7 @@ pub fn demo_scene() -> SceneDesc {
 /// light above a diffuse floor. Every surface splits a ray into a reflected and a refracted
 /// branch, and total internal reflection between the shells keeps branches strong.
 pub fn glass_shells(count: u32) -> SceneDesc {
-    let glass = Material {
-        name: "glass".into(),
-        base_color: Vec4::ONE,
-        metallic: 0.0,
-        roughness: 0.0,
-        transmission: 1.0,
-        ior: 1.5,
-        thickness: 1.0,
-        ..Material::default()
-    };
+    let glass = Material::glass("glass");
     let floor = Material::diffuse("floor", Vec3::splat(0.7));
     let mut meshes: Vec<MeshData> = (0..count)
         .map(|i| {

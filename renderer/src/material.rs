@@ -121,6 +121,20 @@ impl Material {
         }
     }
 
+    /// Clear, smooth glass with a volume (refraction in and out), index of refraction 1.5.
+    pub fn glass(name: &str) -> Material {
+        Material {
+            name: name.into(),
+            base_color: Vec4::ONE,
+            metallic: 0.0,
+            roughness: 0.0,
+            transmission: 1.0,
+            ior: 1.5,
+            thickness: 1.0,
+            ..Material::default()
+        }
+    }
+
     pub fn is_emissive(&self) -> bool {
         self.emissive.max_element() > 0.0
     }

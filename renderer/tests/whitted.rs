@@ -4,7 +4,7 @@
 
 use std::sync::atomic::AtomicBool;
 
-use glam::{Vec3, Vec4};
+use glam::Vec3;
 use renderer::{
     Camera, IntegratorKind, PrepareOptions, Projection, RenderSettings, SceneDesc, demo::sphere,
     light::Light, material::Material, render::render_image,
@@ -15,16 +15,7 @@ const BUDGET: u64 = 256;
 
 #[test]
 fn glass_behind_glass_costs_a_bounded_number_of_rays() {
-    let glass = Material {
-        name: "glass".into(),
-        base_color: Vec4::ONE,
-        metallic: 0.0,
-        roughness: 0.0,
-        transmission: 1.0,
-        ior: 1.5,
-        thickness: 1.0,
-        ..Material::default()
-    };
+    let glass = Material::glass("glass");
     let floor = Material::diffuse("floor", Vec3::splat(0.6));
     let pane = Material {
         name: "pane".into(),
