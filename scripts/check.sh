@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The code's habits, checked: formatting, clippy with warnings as errors on every target,
 # documentation that builds without warnings, the lock file as committed, and the layering
-# invariant that the renderer core reaches no network, runtime or process crate.
+# invariants that the renderer core reaches no network, runtime or process crate and that
+# the roles carry no lab code.
 # scripts/test.sh runs this first. In the release profile, so that clippy and rustdoc reuse
 # the proc macros and build scripts the release build and tests compile anyway.
 set -euo pipefail
@@ -22,4 +23,13 @@ for crate in renderer scene-io; do
         exit 1
     fi
 done
-echo "checks passed: fmt, clippy, docs, --locked, renderer layering"
+# The roles and the fabric carry no lab code (benchmarks, experiments, plots).
+for crate in host fork-node render-node fabric; do
+    forbidden=$(cargo tree --locked -p "$crate" -e normal --prefix none --format '{p}' \
+        | awk '{print $1}' | sort -u | grep -E '^(lab|plotters)$' || true)
+    if [ -n "$forbidden" ]; then
+        echo "invariant broken: $crate depends on: $forbidden" >&2
+        exit 1
+    fi
+done
+echo "checks passed: fmt, clippy, docs, --locked, renderer and role layering"

@@ -2,8 +2,6 @@
 //! node takes. The roles themselves live in the `host`, `fork-node` and `render-node` crates.
 
 pub mod fuzzing;
-pub mod raybench;
-pub mod whittedbench;
 
 use std::path::PathBuf;
 

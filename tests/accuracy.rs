@@ -29,7 +29,7 @@ fn cornell_box_converges_to_the_mitsuba_reference() {
     let mut errors = Vec::new();
     for spp in [16, 64, 1024] {
         let img = render_cornell(spp, &dir);
-        let c = host::compare::compare(&img, &reference).unwrap();
+        let c = lab::compare::compare(&img, &reference).unwrap();
         eprintln!(
             "{spp} spp: relMSE {:.3e}, means {:?} vs {:?}",
             c.rel_mse, c.mean_a, c.mean_b

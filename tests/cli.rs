@@ -124,3 +124,52 @@ fn a_required_unknown_extension_is_refused_by_name() {
         "KHR_materials_iridescence",
     );
 }
+
+/// The lab's whole-render experiment starts this executable again for each run and reads
+/// the figures back from their `--stats`; the cluster run's image must equal the in-process one.
+#[test]
+fn experiment_overhead_runs_both_renders_and_compares_bytes() {
+    let dir = scratch("overhead");
+    let scene = data().join("scenes/cornell/cornell.gltf");
+    let o = run(host()
+        .args(["experiment", "overhead", "--out"])
+        .arg(&dir)
+        .args(["--cluster", "--spawn tiny", "--"])
+        .arg(&scene)
+        .args(["--width", "24", "--height", "16", "--spp", "2"]));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("images identical: true"), "{table}");
+    assert!(table.contains("cluster, 6 processes"), "{table}");
+    same_bytes(&dir.join("in-process.pfm"), &dir.join("cluster.pfm"));
+    let stats: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("cluster.json")).unwrap()).unwrap();
+    assert_eq!(stats["processes"], 6);
+}
+
+/// `experiment links` on the smallest cluster: every table and plot is written, and the
+/// measured one-packet times exist for the distances the card has.
+#[test]
+fn experiment_links_writes_its_tables_and_plots() {
+    let dir = scratch("links");
+    let o = run(host()
+        .args(["experiment", "links", "--spawn", "tiny", "--sizes", "640"])
+        .args(["--count", "1", "--probes", "2", "--out"])
+        .arg(&dir));
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in [
+        "one_way.csv",
+        "transfers.csv",
+        "links.json",
+        "fig1.5-one-node.png",
+        "fig1.6-many-nodes.png",
+    ] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("links.json")).unwrap()).unwrap();
+    let one_way = report["one_way"].as_array().unwrap();
+    assert!(!one_way.is_empty());
+    assert!(one_way.iter().all(|o| o["samples"] == 2), "{one_way:?}");
+    assert!(report["raw"]["one_hop_round_trip_us"].as_f64().unwrap() > 0.0);
+}

@@ -80,7 +80,7 @@ fn renders_match_their_golden_images() {
             scene_io::write_image(&golden_dir().join(format!("{name}.png")), &golden).unwrap();
             let worst = (2..5)
                 .map(|seed| {
-                    host::compare::compare(&render(file, TEST_SPP, seed), &golden)
+                    lab::compare::compare(&render(file, TEST_SPP, seed), &golden)
                         .unwrap()
                         .rel_mse
                 })
@@ -95,7 +95,7 @@ fn renders_match_their_golden_images() {
             .parse()
             .unwrap();
         let got = render(file, TEST_SPP, 7);
-        let c = host::compare::compare(&got, &golden).unwrap();
+        let c = lab::compare::compare(&got, &golden).unwrap();
         assert!(
             c.rel_mse < tolerance,
             "{name}: relMSE {:.3e} against its golden image, tolerance {tolerance:.3e}",

@@ -60,7 +60,7 @@ fn the_same_picture_at_any_scale_and_distance_from_the_origin() {
     let reference = render_text(&dir, "ref.gltf", &transformed_cornell(1.0, 0.0));
     for (scale, translation) in [(1e-4, 0.0), (1e5, 0.0), (1.0, 1e6), (1e-4, 1e6), (1e5, 1e6)] {
         let img = render_text(&dir, "t.gltf", &transformed_cornell(scale, translation));
-        let c = host::compare::compare(&img, &reference).unwrap();
+        let c = lab::compare::compare(&img, &reference).unwrap();
         // The same seed traces the same paths; only the rounding of the scaled coordinates
         // differs, which moves a path's fate only where it grazes an edge.
         assert!(

@@ -133,8 +133,7 @@ impl ClusterArgs {
             cluster_id: self.cluster_id.clone(),
             join_timeout: std::time::Duration::from_secs(self.join_timeout),
             node_log: self.node_log.clone(),
-            node_program: std::env::current_exe()
-                .context("finding this executable, which spawned nodes run")?,
+            node_program: own_program()?,
         })
     }
 }
@@ -360,6 +359,12 @@ struct RenderArgs {
     quiet: bool,
 }
 
+/// This executable: spawned nodes and the lab's whole-render runs start it again.
+fn own_program() -> Result<PathBuf> {
+    std::env::current_exe()
+        .context("finding this executable, which spawned nodes and lab runs start")
+}
+
 fn parse_rgb(s: &str) -> Result<glam::Vec3, String> {
     let v: Vec<f32> = s
         .split(',')
@@ -524,7 +529,7 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 fn bench_rays(a: RaysArgs) -> Result<()> {
-    let cfg = magg::raybench::RaysConfig {
+    let cfg = lab::raybench::RaysConfig {
         mesh: a.mesh,
         rays: a.rays,
         hits: a.hits,
@@ -532,7 +537,7 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
         any_hit: a.any_hit,
         chunk_triangles: a.chunk_triangles,
     };
-    let r = magg::raybench::run(&cfg, &|m| eprintln!("{m}"))?;
+    let r = lab::raybench::run(&cfg, &|m| eprintln!("{m}"))?;
     let kind = if r.any_hit { "any hit" } else { "closest hit" };
     println!(
         "{} triangles, {} chunks: build best {:.3} s, median {:.3} s",
@@ -561,7 +566,7 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
 }
 
 fn bench_whitted(a: WhittedArgs) -> Result<()> {
-    let cfg = magg::whittedbench::WhittedConfig {
+    let cfg = lab::whittedbench::WhittedConfig {
         scenes: a.scenes,
         width: a.width,
         height: a.height,
@@ -570,7 +575,7 @@ fn bench_whitted(a: WhittedArgs) -> Result<()> {
             .threads
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
     };
-    let r = magg::whittedbench::run(&cfg, &|m| eprintln!("{m}"))?;
+    let r = lab::whittedbench::run(&cfg, &|m| eprintln!("{m}"))?;
     println!(
         "{}x{}, {} spp, {} threads",
         cfg.width, cfg.height, cfg.spp, cfg.threads
@@ -634,7 +639,7 @@ fn bench(args: BenchArgs) -> Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let config = host::bench::BenchConfig {
+    let config = lab::bench::BenchConfig {
         mesh: args.mesh,
         triangles: args.triangles,
         cornell: Some(args.cornell),
@@ -643,7 +648,7 @@ fn bench(args: BenchArgs) -> Result<()> {
         threads,
         chunk_triangles: args.chunk_triangles,
     };
-    let r = host::bench::run(&config).map_err(anyhow::Error::msg)?;
+    let r = lab::bench::run(&config).map_err(anyhow::Error::msg)?;
     println!(
         "mesh: {} ({} triangles, {} chunks)",
         r.mesh, r.triangles, r.chunks
@@ -788,18 +793,23 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 fn experiment(cmd: ExperimentCmd) -> Result<()> {
     match cmd {
         ExperimentCmd::Overhead(a) => {
-            let dir = a.out.unwrap_or_else(|| host::runs::out_dir("overhead"));
+            let dir = a.out.unwrap_or_else(|| lab::runs::out_dir("overhead"));
             let cluster: Vec<String> = a.cluster.split_whitespace().map(String::from).collect();
-            let r = host::runs::overhead(&a.render, &cluster, &dir)?;
-            println!("{}", host::runs::overhead_table(&r));
+            let r = lab::runs::overhead(&own_program()?, &a.render, &cluster, &dir)?;
+            println!("{}", lab::runs::overhead_table(&r));
             std::fs::write(dir.join("overhead.json"), serde_json::to_vec_pretty(&r)?)?;
             Ok(())
         }
         ExperimentCmd::Cache(a) => {
-            let dir = a.run.out.unwrap_or_else(|| host::runs::out_dir("cache"));
+            let dir = a.run.out.unwrap_or_else(|| lab::runs::out_dir("cache"));
             let cluster: Vec<String> = a.run.cluster.split_whitespace().map(String::from).collect();
-            let rows = host::runs::cache_sweep(&[a.run.render, cluster].concat(), &a.caches, &dir)?;
-            println!("{}", host::runs::cache_table(&rows));
+            let rows = lab::runs::cache_sweep(
+                &own_program()?,
+                &[a.run.render, cluster].concat(),
+                &a.caches,
+                &dir,
+            )?;
+            println!("{}", lab::runs::cache_table(&rows));
             println!("wrote {}/cache.csv", dir.display());
             Ok(())
         }
@@ -808,16 +818,16 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 .cluster
                 .config()?
                 .with_model(None, Some(args.time_scale));
-            let config = host::experiment::LinksConfig {
+            let config = lab::experiment::LinksConfig {
                 cluster,
                 sizes: args.sizes,
                 count: args.count,
                 probes: args.probes,
                 out_dir: args.out.clone(),
             };
-            let report = runtime()?
-                .block_on(host::experiment::links(&config, &|m| tracing::info!("{m}")))?;
-            println!("{}", host::experiment::tables(&report));
+            let report =
+                runtime()?.block_on(lab::experiment::links(&config, &|m| tracing::info!("{m}")))?;
+            println!("{}", lab::experiment::tables(&report));
             println!(
                 "wrote {0}/one_way.csv, {0}/transfers.csv, {0}/links.json, {0}/fig1.5-one-node.png and {0}/fig1.6-many-nodes.png",
                 args.out.display()
@@ -835,7 +845,7 @@ fn main() {
         Command::Bench(args) => bench(args),
         Command::Gallery(a) => (|| {
             host::inprocess::check_output(&a.output)?;
-            let c = host::gallery::GalleryConfig {
+            let c = lab::gallery::GalleryConfig {
                 dir: a.dir,
                 output: a.output.clone(),
                 size: a.size.clamp(16, 1024),
@@ -844,7 +854,7 @@ fn main() {
                 columns: a.columns,
                 threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             };
-            let entries = host::gallery::gallery(&c, &|f| tracing::info!("{f}"))
+            let entries = lab::gallery::gallery(&c, &|f| tracing::info!("{f}"))
                 .map_err(anyhow::Error::msg)?;
             let failed = entries.iter().filter(|e| e.pixels.is_none()).count();
             let bad: u64 = entries.iter().map(|e| e.bad_samples).sum();
@@ -866,7 +876,7 @@ fn main() {
                 .with_context(|| format!("reading {}", image.display()))?;
             let b = scene_io::read_image(&reference)
                 .with_context(|| format!("reading {}", reference.display()))?;
-            let c = host::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
+            let c = lab::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
             println!("relMSE {:.6e}", c.rel_mse);
             for (i, ch) in ["R", "G", "B"].iter().enumerate() {
                 println!(

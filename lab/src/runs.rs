@@ -12,20 +12,31 @@ use serde::Serialize;
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
-    #[error("{0}")]
-    Failed(String),
-    #[error("{0}")]
+    #[error("starting {}: {source}", program.display())]
+    Start {
+        program: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("render {args} failed: {stderr}")]
+    RenderFailed { args: String, stderr: String },
+    #[error("reading the statistics {}: {source}", path.display())]
+    Stats {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error(transparent)]
     Io(#[from] std::io::Error),
 }
 
-/// Runs `magg-host render ARGS --stats FILE -o OUT` and returns the parsed stats.
+/// Runs `PROGRAM render ARGS --stats FILE -o OUT` (PROGRAM is `magg-host`; the caller names
+/// it, usually its own executable) and returns the parsed stats.
 pub fn render_run(
+    program: &std::path::Path,
     args: &[String],
     out: &std::path::Path,
     stats: &std::path::Path,
 ) -> Result<serde_json::Value, RunError> {
-    let exe = std::env::current_exe()?;
-    let o = Command::new(exe)
+    let o = Command::new(program)
         .arg("render")
         .args(args)
         .arg("--quiet")
@@ -34,15 +45,22 @@ pub fn render_run(
         .arg("--stats")
         .arg(stats)
         .env("MAGG_LOG", "warn")
-        .output()?;
+        .output()
+        .map_err(|source| RunError::Start {
+            program: program.to_path_buf(),
+            source,
+        })?;
     if !o.status.success() {
-        return Err(RunError::Failed(format!(
-            "render {args:?} failed: {}",
-            String::from_utf8_lossy(&o.stderr).trim()
-        )));
+        return Err(RunError::RenderFailed {
+            args: args.join(" "),
+            stderr: String::from_utf8_lossy(&o.stderr).trim().to_string(),
+        });
     }
     let text = std::fs::read(stats)?;
-    serde_json::from_slice(&text).map_err(|e| RunError::Failed(format!("{}: {e}", stats.display())))
+    serde_json::from_slice(&text).map_err(|source| RunError::Stats {
+        path: stats.to_path_buf(),
+        source,
+    })
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -62,6 +80,7 @@ pub struct OverheadReport {
 
 /// In-process against a cluster, same image.
 pub fn overhead(
+    program: &std::path::Path,
     scene_args: &[String],
     cluster_args: &[String],
     dir: &std::path::Path,
@@ -69,11 +88,13 @@ pub fn overhead(
     std::fs::create_dir_all(dir)?;
     let (a, b) = (dir.join("in-process.pfm"), dir.join("cluster.pfm"));
     let sa = render_run(
+        program,
         &[scene_args, &["--in-process".to_string()]].concat(),
         &a,
         &dir.join("in-process.json"),
     )?;
     let sb = render_run(
+        program,
         &[scene_args, cluster_args].concat(),
         &b,
         &dir.join("cluster.json"),
@@ -113,6 +134,7 @@ pub struct CacheRow {
 
 /// One cluster render per cache size; the first is also the reference for equality.
 pub fn cache_sweep(
+    program: &std::path::Path,
     base: &[String],
     caches: &[f64],
     dir: &std::path::Path,
@@ -124,7 +146,7 @@ pub fn cache_sweep(
         let out = dir.join(format!("cache-{c}.pfm"));
         let args = [base, &["--cache".to_string(), c.to_string()]].concat();
         tracing::info!("cache {c}%");
-        let v = render_run(&args, &out, &dir.join(format!("cache-{c}.json")))?;
+        let v = render_run(program, &args, &out, &dir.join(format!("cache-{c}.json")))?;
         let t = &v["totals"];
         let g = |k: &str| t[k].as_u64().unwrap_or(0);
         let fetched = g("bytes_fetched_dma") + g("bytes_fetched_serial");

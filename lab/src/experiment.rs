@@ -13,7 +13,7 @@ use fabric::{Delivery, Topology, Via, clock::now_ns, model::LinkModelKind};
 use protocol::{Message, NodeId, Transfer};
 use serde::Serialize;
 
-use crate::cluster::{Cluster, ClusterConfig, start};
+use host::cluster::{Cluster, ClusterConfig, start};
 
 #[derive(Clone, Debug)]
 pub struct LinksConfig {
@@ -66,9 +66,21 @@ pub struct LinksReport {
 #[derive(Debug, thiserror::Error)]
 pub enum ExperimentError {
     #[error(transparent)]
-    Start(#[from] crate::cluster::StartError),
-    #[error("{0}")]
-    Failed(String),
+    Start(#[from] host::cluster::StartError),
+    #[error("sending a measurement command: {0}")]
+    Send(#[from] fabric::SendError),
+    #[error("nodes did not report their measurements within {0} s")]
+    NoReport(u64),
+    #[error("lost node {0} during the experiment")]
+    LostNode(NodeId),
+    #[error("the host's fabric stopped during the experiment")]
+    FabricStopped,
+    #[error("no render node at the corner of card {0}")]
+    NoCornerNode(u16),
+    #[error(transparent)]
+    Topology(#[from] fabric::topology::TopologyError),
+    #[error("plotting: {0}")]
+    Plot(#[from] crate::LabError),
     #[error("writing results: {0}")]
     Io(#[from] std::io::Error),
 }
@@ -85,19 +97,15 @@ async fn measure(
 ) -> Result<HashMap<NodeId, Vec<u64>>, ExperimentError> {
     let f = &cluster.formed.fabric;
     for (n, m) in &commands {
-        f.send_control(*n, m)
-            .map_err(|e| ExperimentError::Failed(e.to_string()))?;
+        f.send_control(*n, m)?;
     }
     let mut results = HashMap::new();
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
+    const REPORT_WITHIN_S: u64 = 600;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(REPORT_WITHIN_S);
     while results.len() < commands.len() {
         let d = tokio::time::timeout_at(deadline, cluster.formed.inbox.recv())
             .await
-            .map_err(|_| {
-                ExperimentError::Failed(
-                    "nodes did not report their measurements within 600 s".into(),
-                )
-            })?;
+            .map_err(|_| ExperimentError::NoReport(REPORT_WITHIN_S))?;
         match d {
             Some(Delivery::Frame {
                 frame,
@@ -107,13 +115,9 @@ async fn measure(
                     results.insert(node, samples_ns);
                 }
             }
-            Some(Delivery::Lost { peer, .. }) => {
-                return Err(ExperimentError::Failed(format!(
-                    "lost node {peer} during the experiment"
-                )));
-            }
+            Some(Delivery::Lost { peer, .. }) => return Err(ExperimentError::LostNode(peer)),
             Some(_) => {}
-            None => return Err(ExperimentError::Failed("the host's fabric stopped".into())),
+            None => return Err(ExperimentError::FabricStopped),
         }
     }
     Ok(results)
@@ -133,6 +137,56 @@ fn mean_std(samples: &[u64]) -> (f64, f64) {
     (mean / 1000.0, var.sqrt() / 1000.0)
 }
 
+/// Where the demand-transfer data lives and how the cards' render nodes are laid out.
+struct MeshLayout {
+    topology: Topology,
+    /// The card holding the data: card 1 as in the paper (card 0 when there is only one).
+    data_card: u16,
+    cards: Vec<u16>,
+    /// Rows and columns of render nodes on one card.
+    rows: i32,
+    cols: i32,
+}
+
+impl MeshLayout {
+    fn new(topology: Topology) -> MeshLayout {
+        let cards = topology.cards();
+        let data_card = if cards.len() > 1 { cards[1] } else { cards[0] };
+        let mut layout = MeshLayout {
+            topology,
+            data_card,
+            cards,
+            rows: 0,
+            cols: 0,
+        };
+        let pos: Vec<(i32, i32)> = layout
+            .card_nodes(layout.cards[0])
+            .iter()
+            .filter_map(|&n| layout.topology.position(n))
+            .collect();
+        layout.rows = pos.iter().map(|p| p.0).max().unwrap_or(0) + 1;
+        layout.cols = pos.iter().map(|p| p.1).max().unwrap_or(0) + 1;
+        layout
+    }
+
+    fn card_nodes(&self, card: u16) -> Vec<NodeId> {
+        self.topology
+            .render_nodes()
+            .into_iter()
+            .filter(|&r| self.topology.card(r) == Some(card))
+            .collect()
+    }
+
+    fn first_col(&self, card: u16) -> i32 {
+        self.card_nodes(card)
+            .iter()
+            .filter_map(|&n| self.topology.position(n))
+            .map(|p| p.1)
+            .min()
+            .unwrap_or(0)
+    }
+}
+
 pub async fn links(
     config: &LinksConfig,
     progress: &(dyn Fn(&str) + Sync),
@@ -141,45 +195,38 @@ pub async fn links(
         .cluster
         .clone()
         .with_model(Some(LinkModelKind::Paper), None);
-    let t = paper.topology.clone();
-    let model = fabric::Model::new(t.model.clone());
-    progress(&format!("starting {}", t.summary()));
+    let layout = MeshLayout::new(paper.topology.clone());
+    progress(&format!("starting {}", layout.topology.summary()));
     let mut cluster = start(&paper, &|_, _| {}).await?;
-
-    // Geometry: the data lives on card 1 (card 0 when there is only one).
-    let cards = t.cards();
-    let data_card = if cards.len() > 1 { cards[1] } else { cards[0] };
-    let first_data_card = data_card;
-    let card_nodes = |card: u16| -> Vec<NodeId> {
-        t.render_nodes()
-            .into_iter()
-            .filter(|&r| t.card(r) == Some(card))
-            .collect()
-    };
-    let (rows, cols) = {
-        let pos: Vec<(i32, i32)> = card_nodes(cards[0])
-            .iter()
-            .filter_map(|&n| t.position(n))
-            .collect();
-        (
-            pos.iter().map(|p| p.0).max().unwrap_or(0) + 1,
-            pos.iter().map(|p| p.1).max().unwrap_or(0) + 1,
-        )
-    };
-    let first_col = |card: u16| {
-        card_nodes(card)
-            .iter()
-            .filter_map(|&n| t.position(n))
-            .map(|p| p.1)
-            .min()
-            .unwrap_or(0)
-    };
-
-    // One-packet times against the formula.
     progress("one-packet times across the mesh");
-    let c0 = first_col(data_card);
-    let source = node_at(&t, 0, c0)
-        .ok_or_else(|| ExperimentError::Failed("no render node at the card's corner".into()))?;
+    let one_way = one_packet_times(&mut cluster, &layout, config.probes).await?;
+    let transfers = demand_transfers(&mut cluster, &layout, config, progress).await?;
+    cluster.shutdown("experiment done").await;
+    progress("raw fabric cost (no delay model)");
+    let raw = raw_fabric(config).await?;
+    let report = LinksReport {
+        topology: layout.topology.name.clone(),
+        time_scale: layout.topology.model.time_scale,
+        data_card: layout.data_card,
+        one_way,
+        transfers,
+        raw,
+    };
+    write_outputs(&report, config)?;
+    Ok(report)
+}
+
+/// One-packet times from the data card's corner to nodes at several distances, against the
+/// paper's formula.
+async fn one_packet_times(
+    cluster: &mut Cluster,
+    layout: &MeshLayout,
+    probes: u32,
+) -> Result<Vec<OneWay>, ExperimentError> {
+    let t = &layout.topology;
+    let model = fabric::Model::new(t.model.clone());
+    let c0 = layout.first_col(layout.data_card);
+    let source = node_at(t, 0, c0).ok_or(ExperimentError::NoCornerNode(layout.data_card))?;
     let mut one_way = Vec::new();
     for (dr, dc) in [
         (0, 1),
@@ -194,19 +241,19 @@ pub async fn links(
         (1, 3),
         (3, 1),
     ] {
-        if dr >= rows || dc >= cols {
+        if dr >= layout.rows || dc >= layout.cols {
             continue;
         }
-        let Some(to) = node_at(&t, dr, c0 + dc) else {
+        let Some(to) = node_at(t, dr, c0 + dc) else {
             continue;
         };
         let cmd = Message::RunProbes {
             to,
             bytes: 84,
-            count: config.probes,
+            count: probes,
             round_trip: false,
         };
-        let r = measure(&mut cluster, vec![(source, cmd)]).await?;
+        let r = measure(cluster, vec![(source, cmd)]).await?;
         let samples = r.get(&source).cloned().unwrap_or_default();
         let (mean, std) = mean_std(&samples);
         let formula = model.formula_ns(dr as u32, dc as u32) as f64 / 1000.0;
@@ -220,22 +267,30 @@ pub async fn links(
             error_pct: (mean - formula) / formula * 100.0,
         });
     }
+    Ok(one_way)
+}
 
-    // Demand transfers: one node at a time at several distances, then 16, then everyone.
-    let mut singles: Vec<(String, NodeId)> = Vec::new();
-    for &card in cards.iter().take(2) {
-        let c = first_col(card);
-        for (r, cc) in [(0, 0), (rows - 1, cols - 1)] {
-            if let Some(n) = node_at(&t, r, c + cc) {
-                singles.push((format!("1 node: card {card} ({r},{cc})"), n));
+/// Demand transfers: one node at a time at several distances, then one card's nodes, then
+/// everyone at once.
+async fn demand_transfers(
+    cluster: &mut Cluster,
+    layout: &MeshLayout,
+    config: &LinksConfig,
+    progress: &(dyn Fn(&str) + Sync),
+) -> Result<Vec<TransferRow>, ExperimentError> {
+    let t = &layout.topology;
+    let mut groups: Vec<(String, Vec<NodeId>)> = Vec::new();
+    for &card in layout.cards.iter().take(2) {
+        let c = layout.first_col(card);
+        for (r, cc) in [(0, 0), (layout.rows - 1, layout.cols - 1)] {
+            if let Some(n) = node_at(t, r, c + cc) {
+                groups.push((format!("1 node: card {card} ({r},{cc})"), vec![n]));
             }
         }
     }
-    let mut groups: Vec<(String, Vec<NodeId>)> =
-        singles.into_iter().map(|(l, n)| (l, vec![n])).collect();
-    let card0 = card_nodes(cards[0]);
+    let card0 = layout.card_nodes(layout.cards[0]);
     groups.push((
-        format!("{} nodes at once (card {})", card0.len(), cards[0]),
+        format!("{} nodes at once (card {})", card0.len(), layout.cards[0]),
         card0,
     ));
     let all = t.render_nodes();
@@ -246,22 +301,15 @@ pub async fn links(
             for &bytes in &config.sizes {
                 progress(&format!("{label}: {transfer:?} transfers of {bytes} bytes"));
                 let start_ns = now_ns() + 50_000_000;
-                let cmds = nodes
-                    .iter()
-                    .map(|&n| {
-                        (
-                            n,
-                            Message::RunTransfers {
-                                transfer,
-                                bytes,
-                                count: config.count,
-                                owner_card: data_card,
-                                start_ns,
-                            },
-                        )
-                    })
-                    .collect();
-                let r = measure(&mut cluster, cmds).await?;
+                let command = Message::RunTransfers {
+                    transfer,
+                    bytes,
+                    count: config.count,
+                    owner_card: layout.data_card,
+                    start_ns,
+                };
+                let cmds = nodes.iter().map(|&n| (n, command.clone())).collect();
+                let r = measure(cluster, cmds).await?;
                 let samples: Vec<u64> = r.values().flatten().copied().collect();
                 let (mean, _) = mean_std(&samples);
                 transfers.push(TransferRow {
@@ -274,48 +322,30 @@ pub async fn links(
             }
         }
     }
-    cluster.shutdown("experiment done").await;
+    Ok(transfers)
+}
 
-    // The raw fabric: no model, one hop.
-    progress("raw fabric cost (no delay model)");
+/// The raw fabric on a small cluster with no delay model: one hop's times and throughput.
+async fn raw_fabric(config: &LinksConfig) -> Result<RawFabric, ExperimentError> {
     let mut raw_cfg = config
         .cluster
         .clone()
         .with_model(Some(LinkModelKind::None), Some(1.0));
-    raw_cfg.topology =
-        Topology::preset("tiny").map_err(|e| ExperimentError::Failed(e.to_string()))?;
+    raw_cfg.topology = Topology::preset("tiny")?;
     let mut raw_cluster = start(&raw_cfg, &|_, _| {}).await?;
     let rt = &raw_cfg.topology;
     let (a, b) = (
         node_at(rt, 0, 0).unwrap_or(2),
         node_at(rt, 0, 1).unwrap_or(3),
     );
-    let rtt = measure(
-        &mut raw_cluster,
-        vec![(
-            a,
-            Message::RunProbes {
-                to: b,
-                bytes: 84,
-                count: 2000,
-                round_trip: true,
-            },
-        )],
-    )
-    .await?;
-    let ow = measure(
-        &mut raw_cluster,
-        vec![(
-            a,
-            Message::RunProbes {
-                to: b,
-                bytes: 84,
-                count: 2000,
-                round_trip: false,
-            },
-        )],
-    )
-    .await?;
+    let probe = |round_trip| Message::RunProbes {
+        to: b,
+        bytes: 84,
+        count: 2000,
+        round_trip,
+    };
+    let rtt = measure(&mut raw_cluster, vec![(a, probe(true))]).await?;
+    let ow = measure(&mut raw_cluster, vec![(a, probe(false))]).await?;
     let big = 16 << 20;
     let data_card = rt.card(a).unwrap_or(0);
     let mut rates = Vec::new();
@@ -332,23 +362,12 @@ pub async fn links(
         rates.push(big as f64 / mean_us);
     }
     raw_cluster.shutdown("experiment done").await;
-    let raw = RawFabric {
+    Ok(RawFabric {
         one_hop_round_trip_us: mean_std(rtt.get(&a).map(Vec::as_slice).unwrap_or(&[])).0,
         one_hop_one_way_us: mean_std(ow.get(&a).map(Vec::as_slice).unwrap_or(&[])).0,
         serial_hop_mb_per_s: rates[0],
         direct_mb_per_s: rates[1],
-    };
-
-    let report = LinksReport {
-        topology: t.name.clone(),
-        time_scale: t.model.time_scale,
-        data_card: first_data_card,
-        one_way,
-        transfers,
-        raw,
-    };
-    write_outputs(&report, config)?;
-    Ok(report)
+    })
 }
 
 fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), ExperimentError> {
@@ -384,16 +403,14 @@ fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), Experiment
         r,
         false,
         "Fig. 1.5: average transfer time, one render node active",
-    )
-    .map_err(|e| ExperimentError::Failed(e.to_string()))?;
+    )?;
     let many = config.out_dir.join("fig1.6-many-nodes.png");
     crate::plot::transfers_png(
         &many,
         r,
         true,
         "Fig. 1.6: average transfer time, many render nodes active",
-    )
-    .map_err(|e| ExperimentError::Failed(e.to_string()))?;
+    )?;
     Ok(())
 }
 

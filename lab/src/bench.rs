@@ -166,9 +166,7 @@ pub fn run(config: &BenchConfig) -> Result<BenchReport, crate::LabError> {
                 integrator: IntegratorKind::Path,
                 ..RenderSettings::default()
             };
-            let camera = scene
-                .camera(None, 1.0)
-                .map_err(|e| crate::LabError::Camera(e.to_string()))?;
+            let camera = scene.camera(None, 1.0)?;
             let start = Instant::now();
             let (_, stats) = render_image(
                 &scene,
@@ -234,9 +232,7 @@ pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64)
     plain.textures.clear();
     let rate = |desc: renderer::SceneDesc| -> Result<f64, crate::LabError> {
         let (scene, data) = renderer::prepare(desc, &PrepareOptions::default());
-        let camera = scene
-            .camera(None, 1.0)
-            .map_err(|e| crate::LabError::Camera(e.to_string()))?;
+        let camera = scene.camera(None, 1.0)?;
         let settings = RenderSettings {
             width: 128,
             height: 128,

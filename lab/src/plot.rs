@@ -1,8 +1,9 @@
 //! Plots of experiment results as PNG files.
 //!
-//! Text needs a font: the first of a few common TrueType files found on the machine is used
-//! (Debian's fonts-dejavu-core). Without one, the plot is drawn without labels and says so
-//! in the log; the CSV next to it holds the numbers either way.
+//! Text needs a font: the file named by `MAGG_FONT`, else the one fontconfig (`fc-match`)
+//! picks for sans-serif, else the first of a few common DejaVu paths (Debian, Arch, Fedora).
+//! Without one, the plot is drawn without labels and says so in the log; the CSV next to it
+//! holds the numbers either way.
 
 use std::{path::Path, sync::OnceLock};
 
@@ -18,11 +19,31 @@ const FONT_FILES: &[&str] = &[
 
 static HAVE_FONT: OnceLock<bool> = OnceLock::new();
 
+/// Font files to try, most specific first.
+fn font_candidates() -> Vec<std::path::PathBuf> {
+    let mut files: Vec<std::path::PathBuf> = std::env::var_os("MAGG_FONT")
+        .into_iter()
+        .map(Into::into)
+        .collect();
+    // fontconfig knows the machine's fonts wherever its distribution keeps them.
+    if let Ok(o) = std::process::Command::new("fc-match")
+        .args(["--format=%{file}", "sans-serif:style=Regular"])
+        .output()
+        && o.status.success()
+        && let Ok(path) = String::from_utf8(o.stdout)
+        && (path.ends_with(".ttf") || path.ends_with(".otf"))
+    {
+        files.push(path.into());
+    }
+    files.extend(FONT_FILES.iter().map(Into::into));
+    files
+}
+
 /// Registers a font for text, once; false when the machine has none.
 pub fn ensure_font() -> bool {
     *HAVE_FONT.get_or_init(|| {
-        for f in FONT_FILES {
-            if let Ok(bytes) = std::fs::read(f) {
+        for f in font_candidates() {
+            if let Ok(bytes) = std::fs::read(&f) {
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
                 if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
                     return true;

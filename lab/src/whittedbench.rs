@@ -105,7 +105,7 @@ pub fn run(
     progress: &dyn Fn(&str),
 ) -> Result<WhittedReport, WhittedBenchError> {
     let files =
-        host::gallery::scene_files(&cfg.scenes).map_err(|source| WhittedBenchError::Folder {
+        crate::gallery::scene_files(&cfg.scenes).map_err(|source| WhittedBenchError::Folder {
             path: cfg.scenes.clone(),
             source,
         })?;
@@ -167,7 +167,7 @@ pub fn run(
             let (tight, _, _) =
                 render(&scene, &data, &tight_settings, cfg.threads).map_err(fail)?;
             Some(
-                host::compare::compare(&img, &tight)
+                crate::compare::compare(&img, &tight)
                     .map_err(|e| fail(e.to_string()))?
                     .rel_mse,
             )

@@ -1,0 +1,48 @@
+//! The lab: what measures magg rather than runs it. Benchmarks (`bench`, `raybench`,
+//! `whittedbench`), the paper's experiments (`experiment`, `runs`), the gallery of shared
+//! scenes, plots and image comparison. It stands apart from the roles so that the host,
+//! fork node and render node libraries carry only what a cluster needs; it uses them the
+//! way a user would (whole renders, real clusters, the render node's cache).
+
+pub mod bench;
+pub mod compare;
+pub mod experiment;
+pub mod gallery;
+pub mod plot;
+pub mod raybench;
+pub mod runs;
+pub mod whittedbench;
+
+/// Why a lab command (bench, gallery, plots) could not finish.
+#[derive(Debug, thiserror::Error)]
+pub enum LabError {
+    #[error(transparent)]
+    Load(#[from] scene_io::LoadError),
+    #[error(transparent)]
+    Image(#[from] scene_io::ImageError),
+    #[error("rendering failed: {0}")]
+    Render(#[from] renderer::DataError),
+    #[error("encoding a PNG: {0}")]
+    Encode(#[from] image::ImageError),
+    #[error(transparent)]
+    Camera(#[from] renderer::scene::SceneError),
+    /// The plotting library's own error, as it words it (its types are generic per backend).
+    #[error("drawing: {0}")]
+    Draw(String),
+    #[error("nothing to plot")]
+    NothingToPlot,
+    #[error("{path}: {source}")]
+    Folder {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{0}: no .gltf or .glb files")]
+    NoScenes(std::path::PathBuf),
+}
+
+impl LabError {
+    /// For `map_err` on a plotting call.
+    pub fn draw(e: impl std::fmt::Display) -> LabError {
+        LabError::Draw(e.to_string())
+    }
+}
