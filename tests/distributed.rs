@@ -232,37 +232,40 @@ fn a_cache_smaller_than_a_chunk_is_a_clear_error() {
 fn interrupting_the_host_stops_every_process() {
     let dir = scratch("ctrl-c");
     let out = dir.join("never.png");
-    let mut child = host()
-        .args([
-            "render", "--spawn", "tiny", "--spp", "4096", "--width", "200", "--height", "200",
-            "--quiet", "-o",
-        ])
-        .arg(&out)
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let pid = child.id();
-    // Wait until the nodes are running.
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
-    let mut kids = Vec::new();
-    while std::time::Instant::now() < deadline {
-        kids = children_of(pid);
-        if kids.len() == 5 {
-            break;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
+    let mut host = Logged::start(
+        host()
+            .args([
+                "--log",
+                "info,magg::event=debug",
+                "render",
+                "--spawn",
+                "tiny",
+            ])
+            .args([
+                "--spp", "4096", "--width", "200", "--height", "200", "--quiet", "-o",
+            ])
+            .arg(&out),
+    );
+    // Interrupt once the render is under way: the first pixels have reached the host.
+    host.wait_for(
+        "MAGG_EVENT pixels node=",
+        std::time::Duration::from_secs(60),
+    )
+    .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
+    let kids = children_of(host.pid());
     assert_eq!(kids.len(), 5, "the host should have started 5 nodes");
-    std::thread::sleep(std::time::Duration::from_millis(1500));
     let _ = rustix::process::kill_process(
-        rustix::process::Pid::from_raw(pid as i32).unwrap(),
+        rustix::process::Pid::from_raw(host.pid() as i32).unwrap(),
         rustix::process::Signal::INT,
     );
-    let status = child.wait().unwrap();
-    assert_eq!(status.code(), Some(130));
+    let code = host.wait_exit(std::time::Duration::from_secs(30));
+    assert_eq!(code, Some(Some(130)), "{}", host.log());
     assert!(!out.exists(), "no image after an interrupt");
-    std::thread::sleep(std::time::Duration::from_millis(500));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
     for k in kids {
+        while !exited(k) && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
         assert!(exited(k), "node process {k} outlived the host");
     }
 }
