@@ -1,13 +1,18 @@
 //! Rendering in this one process, on all its cores: the reference every cluster render must
 //! match byte for byte.
 
-use std::{path::PathBuf, sync::atomic::AtomicBool, time::Instant};
+use std::{
+    path::PathBuf,
+    sync::{Mutex, atomic::AtomicBool},
+    time::Instant,
+};
 
-use renderer::{DataError, PrepareOptions, RenderSettings, render::render_image};
+use renderer::{DataError, PrepareOptions, RenderSettings, render};
 
 use crate::{
+    checkpoint::{self, Checkpoint, CheckpointError, CheckpointKey},
     progress::Progress,
-    scene_source::{SceneSource, load_scene},
+    scene_source::{SceneSource, read_scene},
     stats::RenderStats,
 };
 
@@ -25,6 +30,11 @@ pub struct RenderConfig {
     /// Radiance from outside the scene; `None` for the scene's default.
     pub environment: Option<renderer::light::Environment>,
     pub progress: bool,
+    /// Continue from the checkpoint beside the output (`OUT.partial`) instead of refusing
+    /// to start over it.
+    pub resume: bool,
+    /// How often the checkpoint of a render in progress is replaced.
+    pub checkpoint_interval: std::time::Duration,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -37,6 +47,15 @@ pub enum RenderError {
     Render(#[from] DataError),
     #[error(transparent)]
     Output(#[from] scene_io::ImageError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// Stopped by the user; the finished lines are in the checkpoint.
+    #[error("interrupted; {kept} of {height} scan lines are kept in {} (run again with --resume to finish)", path.display())]
+    Interrupted {
+        path: PathBuf,
+        kept: usize,
+        height: u32,
+    },
 }
 
 /// Checks settings that do not need the scene, so mistakes surface before minutes of work.
@@ -103,16 +122,58 @@ fn check_writable_dir(path: &std::path::Path) -> Result<(), RenderError> {
 
 /// Loads, renders and writes, returning the statistics of the run.
 pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderError> {
+    render_in_process_until(config, &AtomicBool::new(false))
+}
+
+/// The finished rectangles of a render in progress, kept as a checkpoint and written to
+/// disk now and then.
+struct Keeper {
+    checkpoint: Checkpoint,
+    pending: Vec<u32>,
+    path: PathBuf,
+    last_write: Instant,
+    interval: std::time::Duration,
+    /// The first error writing the checkpoint; the render goes on, the user is told.
+    failed: Option<CheckpointError>,
+}
+
+impl Keeper {
+    fn take(&mut self, rect: renderer::Rect, pixels: &[[f32; 3]]) {
+        self.checkpoint.put_rect(rect, pixels, &mut self.pending);
+        if self.last_write.elapsed() >= self.interval {
+            self.save();
+        }
+    }
+
+    fn save(&mut self) {
+        self.last_write = Instant::now();
+        if let Err(e) = self.checkpoint.write(&self.path)
+            && self.failed.is_none()
+        {
+            tracing::warn!("cannot keep a checkpoint: {e}");
+            self.failed = Some(e);
+        }
+    }
+}
+
+/// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)
+/// once `cancel` is set.
+pub fn render_in_process_until(
+    config: &RenderConfig,
+    cancel: &AtomicBool,
+) -> Result<RenderStats, RenderError> {
     check_settings(config)?;
     let t0 = Instant::now();
-    let loaded = load_scene(&config.scene, &config.prepare, config.environment)?;
-    for w in &loaded.warnings {
+    let (desc, warnings) = read_scene(&config.scene, config.environment)?;
+    for w in &warnings {
         tracing::warn!("{}: {w}", config.scene);
     }
+    let scene_sha256 = checkpoint::scene_digest(&desc);
+    let (scene, data) = renderer::prepare(desc, &config.prepare);
+    let triangles = scene.triangle_count();
     let mut settings = config.settings.clone();
     let aspect = settings.width as f32 / settings.height as f32;
-    let camera = loaded
-        .scene
+    let camera = scene
         .camera(config.camera.as_deref(), aspect)
         .map_err(|e| RenderError::Settings(e.to_string()))?;
     if !config.height_given
@@ -120,14 +181,17 @@ pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderErr
     {
         settings.height = ((settings.width as f32 / a).round() as u32).clamp(1, 32768);
     }
+    let key = CheckpointKey::new(scene_sha256, &config.prepare, &settings, &camera);
+    let path = checkpoint::path_for(&config.output);
+    let start = checkpoint::start(&path, config.resume, key, settings.width, settings.height)?;
     let load_s = t0.elapsed().as_secs_f64();
     tracing::info!(
         "{}: {} triangles in {} chunks, {} lights, {} textures; camera {:?}; {}x{} at {} spp ({})",
         config.scene,
-        loaded.triangles,
-        loaded.scene.chunks.len(),
-        loaded.scene.lights.len(),
-        loaded.scene.textures.len(),
+        triangles,
+        scene.chunks.len(),
+        scene.lights.len(),
+        scene.textures.len(),
         camera.name,
         settings.width,
         settings.height,
@@ -136,24 +200,67 @@ pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderErr
     );
 
     let total = settings.width as u64 * settings.height as u64;
+    let already = start.rows_finished() as u64 * settings.width as u64;
+    let rects = render::tiles_of_rows_left(settings.width, 16, &start.rows_done);
+    let image = start.image.clone();
+    let keeper = Mutex::new(Keeper {
+        pending: start.pending(),
+        checkpoint: start,
+        path: path.clone(),
+        last_write: Instant::now(),
+        interval: config.checkpoint_interval,
+        failed: None,
+    });
     let progress = Progress::new(total, config.progress);
-    let cancel = AtomicBool::new(false);
+    let done = std::sync::atomic::AtomicU64::new(already);
     let t1 = Instant::now();
-    let (image, trace) = render_image(
-        &loaded.scene,
-        &loaded.data,
+    let rendered = render::render_rects(
+        &scene,
+        &data,
         &camera,
         &settings,
         config.threads,
-        16,
-        &cancel,
-        &|done, total| progress.update(done, total),
-    )?;
+        &rects,
+        image,
+        cancel,
+        &|rect, pixels| {
+            keeper.lock().expect("checkpoint lock").take(rect, pixels);
+            let n = rect.pixel_count() as u64;
+            progress.update(
+                done.fetch_add(n, std::sync::atomic::Ordering::Relaxed) + n,
+                total,
+            );
+        },
+    );
+    let mut keeper = keeper.into_inner().expect("checkpoint lock");
+    let (image, trace) = match rendered {
+        Ok(r) => r,
+        Err(DataError::Cancelled) => {
+            progress.finish();
+            keeper.save();
+            if let Some(e) = keeper.failed {
+                return Err(e.into());
+            }
+            return Err(RenderError::Interrupted {
+                path,
+                kept: keeper.checkpoint.rows_finished(),
+                height: settings.height,
+            });
+        }
+        Err(e) => {
+            keeper.save();
+            return Err(e.into());
+        }
+    };
     progress.finish();
     let render_s = t1.elapsed().as_secs_f64();
 
     let t2 = Instant::now();
     scene_io::write_image(&config.output, &image)?;
+    // The image is whole: its checkpoint, if one was written, has served.
+    if path.exists() {
+        let _ = std::fs::remove_file(&path);
+    }
     let write_s = t2.elapsed().as_secs_f64();
 
     let mut stats = RenderStats {
@@ -166,10 +273,10 @@ pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderErr
         seed: settings.seed,
         integrator: settings.integrator.to_string(),
         threads: config.threads,
-        triangles: loaded.triangles,
-        chunks: loaded.scene.chunks.len(),
-        shape_bytes: loaded.scene.shape_bytes,
-        texture_tiles: loaded.scene.tile_count,
+        triangles,
+        chunks: scene.chunks.len(),
+        shape_bytes: scene.shape_bytes,
+        texture_tiles: scene.tile_count,
         ..Default::default()
     };
     stats.seconds.load = load_s;

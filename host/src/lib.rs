@@ -2,6 +2,7 @@
 //! (`inprocess`) or hands the work out to a cluster (`distributed`, `cluster`, `spawn`), and
 //! saves the image. The lab (benchmarks, experiments, plots) is the `lab` crate, beside it.
 
+pub mod checkpoint;
 pub mod cluster;
 pub mod distributed;
 pub mod inprocess;

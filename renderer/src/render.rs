@@ -226,6 +226,30 @@ pub fn tiles(width: u32, height: u32, size: u32) -> Vec<Rect> {
     out
 }
 
+/// Tiles of at most `size` x `size` pixels covering the scan lines not yet `done` (one flag
+/// per line), band by band: what is left of an image after a checkpoint.
+pub fn tiles_of_rows_left(width: u32, size: u32, done: &[bool]) -> Vec<Rect> {
+    let mut out = Vec::new();
+    let mut y = 0;
+    while y < done.len() {
+        if done[y] {
+            y += 1;
+            continue;
+        }
+        let end = (y..done.len()).find(|&e| done[e]).unwrap_or(done.len());
+        out.extend(
+            tiles(width, (end - y) as u32, size)
+                .into_iter()
+                .map(|mut r| {
+                    r.y += y as u32;
+                    r
+                }),
+        );
+        y = end;
+    }
+    out
+}
+
 /// Renders the whole image in this process on `threads` threads, tile by tile.
 /// `progress(pixels_done, pixels_total)` is called after every tile.
 #[allow(clippy::too_many_arguments)]
@@ -240,10 +264,40 @@ pub fn render_image<D: SceneData + Sync>(
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<(Image, TraceStats), DataError> {
     let rects = tiles(settings.width, settings.height, tile_size);
-    let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let total = settings.width as u64 * settings.height as u64;
-    let image = Mutex::new(Image::new(settings.width, settings.height));
+    render_rects(
+        scene,
+        data,
+        camera,
+        settings,
+        threads,
+        &rects,
+        Image::new(settings.width, settings.height),
+        cancel,
+        &|rect, _| {
+            let d = done.fetch_add(rect.pixel_count(), Ordering::Relaxed) + rect.pixel_count();
+            progress(d as u64, total);
+        },
+    )
+}
+
+/// Renders `rects` into `image` (whose other pixels are kept) on `threads` threads, and
+/// calls `finished(rect, pixels)` as each rectangle is done, from the thread that did it.
+#[allow(clippy::too_many_arguments)]
+pub fn render_rects<D: SceneData + Sync>(
+    scene: &Scene,
+    data: &D,
+    camera: &Camera,
+    settings: &RenderSettings,
+    threads: usize,
+    rects: &[Rect],
+    image: Image,
+    cancel: &AtomicBool,
+    finished: &(dyn Fn(Rect, &[[f32; 3]]) + Sync),
+) -> Result<(Image, TraceStats), DataError> {
+    let next = AtomicUsize::new(0);
+    let image = Mutex::new(image);
     let stats = Mutex::new(TraceStats::default());
     let error: Mutex<Option<DataError>> = Mutex::new(None);
     let local_cancel = AtomicBool::new(false);
@@ -263,9 +317,7 @@ pub fn render_image<D: SceneData + Sync>(
                         Ok(st) => {
                             image.lock().expect("image lock").put_rect(rect, &buf);
                             stats.lock().expect("stats lock").add(&st);
-                            let d = done.fetch_add(rect.pixel_count(), Ordering::Relaxed)
-                                + rect.pixel_count();
-                            progress(d as u64, total);
+                            finished(rect, &buf);
                         }
                         Err(e) => {
                             error.lock().expect("error lock").get_or_insert(e);
@@ -305,5 +357,26 @@ mod tests {
             }
         }
         assert!(cover.iter().all(|&c| c == 1));
+    }
+
+    #[test]
+    fn tiles_of_rows_left_cover_exactly_the_lines_not_done() {
+        let done = [true, false, false, false, true, true, false, true, false];
+        let t = tiles_of_rows_left(10, 2, &done);
+        let mut cover = vec![0; 10 * done.len()];
+        for r in &t {
+            assert!(r.width <= 2 && r.height <= 2);
+            for y in r.y..r.y + r.height {
+                for x in r.x..r.x + r.width {
+                    cover[(y * 10 + x) as usize] += 1;
+                }
+            }
+        }
+        for (y, &d) in done.iter().enumerate() {
+            for x in 0..10 {
+                assert_eq!(cover[y * 10 + x], u32::from(!d), "pixel ({x}, {y})");
+            }
+        }
+        assert!(tiles_of_rows_left(10, 4, &[true; 3]).is_empty());
     }
 }

@@ -284,6 +284,13 @@ struct RenderArgs {
     /// Render in this one process on all cores (instead of on a cluster).
     #[arg(long)]
     in_process: bool,
+    /// Continue an interrupted render from its checkpoint `OUTPUT.partial` (on any
+    /// cluster, or in one process); the image is the same bytes as an uninterrupted render.
+    #[arg(long)]
+    resume: bool,
+    /// Seconds between checkpoints of a render in progress (`OUTPUT.partial`).
+    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
+    checkpoint_every: f64,
     #[command(flatten)]
     cluster: ClusterArgs,
     /// How render nodes get shape data: demand (fetched into a bounded cache) or batch.
@@ -468,6 +475,8 @@ fn render(args: RenderArgs) -> Result<()> {
             chunk_triangles: args.chunk_triangles.max(1),
         },
         progress: !args.quiet,
+        resume: args.resume,
+        checkpoint_interval: std::time::Duration::from_secs_f64(args.checkpoint_every.max(0.0)),
     };
     if !args.in_process {
         if !(args.cache > 0.0 && args.cache <= 100.0) {
@@ -514,7 +523,26 @@ fn render(args: RenderArgs) -> Result<()> {
         print_cluster_summary(&stats);
         return Ok(());
     }
-    let stats = host::render_in_process(&config)?;
+    let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let c = cancel.clone();
+    // Ctrl-C or SIGTERM stops the render with its finished lines kept for --resume.
+    std::thread::spawn(move || {
+        if let Ok(rt) = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+        {
+            let signal = rt.block_on(magg::stop_signal());
+            tracing::warn!("{signal}: stopping the render");
+            c.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    });
+    let stats = match host::inprocess::render_in_process_until(&config, &cancel) {
+        Err(e @ host::RenderError::Interrupted { .. }) => {
+            eprintln!("{e}");
+            std::process::exit(130);
+        }
+        r => r?,
+    };
     eprintln!(
         "wrote {} ({}x{}, {} spp) in {:.2} s: {:.2} M rays/s, {:.0} samples/s",
         stats.output,
