@@ -11,7 +11,18 @@ use clap::Args;
 /// Parses the command line; a mistake is one line on stderr and exit code 2 (help and
 /// version print as usual).
 pub fn parse_args<T: clap::Parser>() -> T {
-    match T::try_parse() {
+    parse_command_line(T::command())
+}
+
+/// [`parse_args`] for a command line described at run time: `command` is `T`'s, renamed or
+/// reworded.
+fn parse_command_line<T: clap::FromArgMatches>(mut command: clap::Command) -> T {
+    let parsed = command
+        .try_get_matches_from_mut(std::env::args_os())
+        .and_then(|mut matches| {
+            T::from_arg_matches_mut(&mut matches).map_err(|e| e.format(&mut command))
+        });
+    match parsed {
         Ok(t) => t,
         Err(e)
             if matches!(
@@ -167,6 +178,33 @@ pub async fn stop_signal() -> &'static str {
     tokio::select! {
         _ = term.recv() => "SIGTERM",
         _ = int.recv() => "SIGINT",
+    }
+}
+
+/// The command line of `magg-fork-node` and `magg-render-node`: the node flags and a log level.
+#[derive(clap::Parser)]
+#[command(version = protocol::BUILD_ID)]
+pub struct NodeCli {
+    #[command(flatten)]
+    pub node: NodeArgs,
+    /// Log level filter.
+    #[arg(long, env = "MAGG_LOG", default_value = "info")]
+    pub log: String,
+}
+
+/// The whole of `magg-fork-node` and `magg-render-node`, which differ only in their role
+/// and how they introduce themselves: parse the command line, start logging, run the node;
+/// a failure is one line on stderr and exit status 1.
+pub fn node_binary_main(role: protocol::Role, name: &'static str, about: &'static str) {
+    let command = <NodeCli as clap::CommandFactory>::command()
+        .name(name)
+        .about(about)
+        .long_about(None);
+    let cli: NodeCli = parse_command_line(command);
+    init_logging(&cli.log);
+    if let Err(e) = node_main(role, &cli.node) {
+        eprintln!("error: {}", report(&e));
+        std::process::exit(1);
     }
 }
 

@@ -12,6 +12,7 @@ pub mod cluster;
 pub mod diag;
 pub mod model;
 pub mod node;
+pub mod role;
 pub mod routing;
 pub mod topology;
 

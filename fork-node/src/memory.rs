@@ -1,13 +1,16 @@
 //! A card's shared memory: the scene header, the address table, and the chunks and texture
-//! tiles this card holds, kept as the word blocks they travel as.
+//! tiles this card holds, kept as the word blocks they travel as. It fills from the first
+//! fork node's placement, and is complete once the header and every announced item are here.
 
 use std::{collections::HashMap, sync::Arc};
 
-use protocol::{DataId, NodeId};
+use protocol::{DataId, NodeId, decode_value};
 use renderer::Scene;
 
+use crate::ForkNode;
+
 #[derive(Default)]
-pub struct SharedMemory {
+pub(crate) struct SharedMemory {
     pub scene: Option<Arc<Scene>>,
     /// The header as it travelled (bincode), to pass on to render nodes unchanged.
     pub header_bytes: Option<Arc<Vec<u8>>>,
@@ -37,5 +40,160 @@ impl SharedMemory {
         let chunks = (0..self.chunk_owner.len() as u32).map(DataId::Chunk);
         let tiles = (0..self.tile_owner.len() as u32).map(DataId::Tile);
         chunks.chain(tiles).collect()
+    }
+
+    /// Keeps an item; an item sent twice counts once.
+    pub fn store(&mut self, id: DataId, words: Arc<[u32]>) {
+        if self.data.insert(id, words).is_none() {
+            self.received += 1;
+        }
+    }
+}
+
+/// Why a scene header cannot go into this card's memory.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum HeaderError {
+    #[error("undecodable scene header: {0}")]
+    Decode(#[from] protocol::DecodeError),
+    #[error(transparent)]
+    Invalid(#[from] renderer::scene::SceneError),
+    #[error("the address table does not match the scene")]
+    AddressTable,
+}
+
+/// The scene in a header, checked against the address table that came with it.
+pub(crate) fn decode_header(
+    bytes: &[u8],
+    chunk_owner: &[NodeId],
+    tile_owner: &[NodeId],
+) -> Result<Scene, HeaderError> {
+    let scene: Scene = decode_value(bytes)?;
+    scene.validate()?;
+    if chunk_owner.len() != scene.chunks.len() || tile_owner.len() != scene.tile_count as usize {
+        return Err(HeaderError::AddressTable);
+    }
+    Ok(scene)
+}
+
+/// Whether `words` can be item `id`: render nodes trust what this memory hands them.
+pub(crate) fn valid_item(id: DataId, words: &[u32]) -> bool {
+    match id {
+        DataId::Chunk(_) => renderer::chunk::Chunk::from_words(words.into()).is_ok(),
+        DataId::Tile(_) => words.len() == renderer::texture::TILE_TEXELS,
+        DataId::Synthetic { .. } => false,
+    }
+}
+
+impl ForkNode {
+    pub(crate) fn on_header(
+        self: &Arc<ForkNode>,
+        bytes: Vec<u8>,
+        chunk_owner: Vec<NodeId>,
+        tile_owner: Vec<NodeId>,
+    ) {
+        let scene = match decode_header(&bytes, &chunk_owner, &tile_owner) {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!("fork node {}: {e}", self.fabric.me());
+                return;
+            }
+        };
+        {
+            let mut m = self.memory.lock().expect("memory lock");
+            m.scene = Some(Arc::new(scene));
+            m.header_bytes = Some(Arc::new(bytes));
+            m.chunk_owner = chunk_owner;
+            m.tile_owner = tile_owner;
+        }
+        self.maybe_ready();
+    }
+
+    pub(crate) fn on_hold(self: &Arc<ForkNode>, id: DataId, words: Box<[u32]>) {
+        if !valid_item(id, &words) {
+            tracing::error!(
+                "fork node {}: received {id:?} is not valid data; ignored",
+                self.fabric.me()
+            );
+            return;
+        }
+        self.store(id, words.into());
+        self.maybe_ready();
+    }
+
+    pub(crate) fn store(&self, id: DataId, words: Arc<[u32]>) {
+        self.memory.lock().expect("memory lock").store(id, words);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use protocol::encode_value;
+
+    use super::*;
+
+    fn demo() -> Scene {
+        let opts = renderer::PrepareOptions {
+            chunk_triangles: 64,
+        };
+        renderer::prepare(renderer::demo::demo_scene(), &opts).0
+    }
+
+    #[test]
+    fn complete_once_the_header_and_every_announced_item_are_here() {
+        let mut m = SharedMemory::default();
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
+        m.expected = Some(2);
+        assert!(!m.complete(), "one of two, and no header");
+        m.store(DataId::Tile(3), Arc::from(vec![2u32]));
+        assert!(!m.complete(), "no header");
+        m.scene = Some(Arc::new(demo()));
+        assert!(m.complete());
+    }
+
+    #[test]
+    fn an_item_stored_twice_counts_once() {
+        let mut m = SharedMemory::default();
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
+        assert_eq!(m.received, 1);
+    }
+
+    #[test]
+    fn owners_come_from_the_address_table() {
+        let m = SharedMemory {
+            chunk_owner: vec![1, 2],
+            tile_owner: vec![2],
+            ..SharedMemory::default()
+        };
+        assert_eq!(m.owner(DataId::Chunk(1)), Some(2));
+        assert_eq!(m.owner(DataId::Tile(0)), Some(2));
+        assert_eq!(m.owner(DataId::Chunk(2)), None);
+        assert_eq!(m.owner(DataId::Synthetic { bytes: 4 }), None);
+        assert_eq!(
+            m.all_ids(),
+            [DataId::Chunk(0), DataId::Chunk(1), DataId::Tile(0)]
+        );
+    }
+
+    #[test]
+    fn decode_header_checks_the_address_table() {
+        let scene = demo();
+        let bytes = encode_value(&scene);
+        let chunks = vec![1; scene.chunks.len()];
+        let tiles = vec![1; scene.tile_count as usize];
+        assert!(decode_header(&bytes, &chunks, &tiles).is_ok());
+        let err = decode_header(&bytes, &chunks[1..], &tiles).unwrap_err();
+        assert!(matches!(err, HeaderError::AddressTable), "{err}");
+        let err = decode_header(&[0xff; 8], &[], &[]).unwrap_err();
+        assert!(matches!(err, HeaderError::Decode(_)), "{err}");
+    }
+
+    #[test]
+    fn only_whole_tiles_and_well_formed_chunks_are_held() {
+        let tile = vec![0u32; renderer::texture::TILE_TEXELS];
+        assert!(valid_item(DataId::Tile(0), &tile));
+        assert!(!valid_item(DataId::Tile(0), &tile[1..]));
+        assert!(!valid_item(DataId::Chunk(0), &[1, 2, 3]));
+        assert!(!valid_item(DataId::Synthetic { bytes: 4 }, &[0]));
     }
 }

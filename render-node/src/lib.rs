@@ -2,176 +2,159 @@
 //! the shape and texture data its rays need from its fork node into a bounded cache
 //! ([`cache`]), on rendering threads of its own ([`worker`]), while this runtime relays other
 //! nodes' packets through the mesh.
+//!
+//! The node's life (joining, stopping, losing the host) is [`fabric::role::run_role`]'s;
+//! this crate adds what a render node does with its messages: collect the scene header, the
+//! job and any batch data until rendering can start ([`start`]), give back unbegun rows when
+//! the host asks, report its statistics, and run the host's measurements ([`measure`]).
 
 pub mod cache;
+mod measure;
+mod start;
 pub mod worker;
 
-use std::{
-    sync::{Arc, Mutex, atomic::Ordering},
-    time::Duration,
-};
+use std::sync::{Arc, atomic::Ordering};
 
-use cache::{DemandCache, Source};
+use cache::DemandCache;
 use fabric::{
-    Delivery, Fabric, Route, Via,
-    clock::now_ns,
-    cluster::{ClusterError, JoinConfig, join},
+    Fabric, Via,
+    cluster::JoinConfig,
+    node::CounterSnapshot,
+    role::{RoleError, RoleHandler, run_role},
 };
-use protocol::{
-    ConnectionKind, DataId, Frame, JobSpec, Message, NodeId, NodeStats, Role, Transfer,
-    TransferMode, decode_value, words_to_bytes,
-};
+use protocol::{Frame, Message, NodeId, NodeStats, Role, decode_value, words_to_bytes};
 use renderer::Scene;
-use worker::{ActiveMap, WorkStats, Worker};
-
-#[derive(Debug, thiserror::Error)]
-pub enum RenderNodeError {
-    #[error("joining the cluster: {0}")]
-    Join(#[from] ClusterError),
-    #[error("lost the connection to the host")]
-    HostLost,
-}
+use start::Render;
+use worker::{ActiveMap, WorkStats};
 
 pub struct Config {
     pub join: JoinConfig,
 }
 
-/// What this node knows of the current render.
-#[derive(Default)]
-struct Render {
-    scene: Option<Arc<Scene>>,
-    chunk_owner: Vec<NodeId>,
-    tile_owner: Vec<NodeId>,
-    job: Option<Arc<JobSpec>>,
-    /// Batch data received before rendering starts, and how much is coming.
-    batch: Vec<(DataId, Box<[u32]>)>,
-    batch_expected: Option<u32>,
-    cache: Option<Arc<DemandCache>>,
-    started: bool,
+/// Runs a render node until the host says stop or goes away.
+pub async fn run(config: Config) -> Result<(), RoleError> {
+    run_role(config.join, |fabric| RenderNode {
+        fabric: fabric.clone(),
+        render: Render::default(),
+        active: ActiveMap::default(),
+        stats: Arc::default(),
+    })
+    .await
 }
 
-/// Runs a render node until the host says stop or goes away.
-pub async fn run(config: Config) -> Result<(), RenderNodeError> {
-    let joined = join(config.join).await?;
-    let fabric = joined.fabric.clone();
-    let mut inbox = joined.inbox;
-    tracing::info!("render node {} ready", fabric.me());
-    let mut render = Render::default();
-    let active: ActiveMap = Arc::default();
-    let stats = Arc::new(WorkStats::default());
-    let threads: Arc<Mutex<Vec<std::thread::JoinHandle<()>>>> = Arc::default();
-    let mut pending = joined.early;
-    loop {
-        let d = match pending.pop() {
-            Some(d) => d,
-            None => match inbox.recv().await {
-                Some(d) => d,
-                None => return Err(RenderNodeError::HostLost),
+/// A render node's state between messages. Only the node's runtime touches it; the
+/// rendering threads share just the subscreens in progress and the work counters.
+struct RenderNode {
+    fabric: Fabric,
+    render: Render,
+    active: ActiveMap,
+    stats: Arc<WorkStats>,
+}
+
+impl RoleHandler for RenderNode {
+    const NAME: &'static str = "render node";
+
+    fn on_message(&mut self, frame: Frame, message: Message, _via: Via) {
+        let fabric = &self.fabric;
+        match message {
+            Message::Header {
+                len,
+                chunk_owner,
+                tile_owner,
+            } => match decode_header(&frame.data, len, &chunk_owner, &tile_owner) {
+                Ok(scene) => {
+                    self.render.scene = Some(Arc::new(scene));
+                    self.render.chunk_owner = chunk_owner;
+                    self.render.tile_owner = tile_owner;
+                }
+                Err(e) => fail(
+                    fabric,
+                    &format!("scene header from node {}: {e}", frame.header.sender),
+                ),
             },
-        };
-        match d {
-            Delivery::Frame { frame, via } => {
-                let msg = match frame.message() {
-                    Ok(m) => m,
-                    Err(e) => {
-                        tracing::warn!("undecodable frame from node {}: {e}", frame.header.sender);
-                        continue;
-                    }
-                };
-                if fabric::diag::handle(&fabric, &frame, &msg) {
-                    continue;
-                }
-                match msg {
-                    Message::Shutdown { reason } if via == Via::Control(0) => {
-                        tracing::info!("render node {} stopping: {reason}", fabric.me());
-                        fabric::cluster::leave(&fabric).await;
-                        return Ok(());
-                    }
-                    Message::NodeDown { node } if via == Via::Control(0) => {
-                        tracing::warn!(
-                            "render node {}: node {node} is gone; routing around it",
-                            fabric.me()
-                        );
-                        fabric.mark_dead(node);
-                    }
-                    Message::Header {
-                        len,
-                        chunk_owner,
-                        tile_owner,
-                    } => match decode_header(&frame, len, &chunk_owner, &tile_owner) {
-                        Ok(scene) => {
-                            render.scene = Some(Arc::new(scene));
-                            render.chunk_owner = chunk_owner;
-                            render.tile_owner = tile_owner;
-                        }
-                        Err(e) => fail(
-                            &fabric,
-                            &format!("scene header from node {}: {e}", frame.header.sender),
-                        ),
+            Message::Job(job) => self.render.job = Some(Arc::new(*job)),
+            Message::Hold { id } => self.render.batch.push((id, frame.data)),
+            Message::HoldDone { count } => self.render.batch_expected = Some(count),
+            Message::GiveBack { subscreen } => {
+                let found = self
+                    .active
+                    .lock()
+                    .expect("active lock")
+                    .get(&subscreen)
+                    .cloned();
+                let from_row = found.map_or(u32::MAX, |a| a.give_back());
+                let _ = fabric.send(
+                    0,
+                    &Message::Returned {
+                        subscreen,
+                        from_row,
                     },
-                    Message::Job(job) => render.job = Some(Arc::new(*job)),
-                    Message::Hold { id } => render.batch.push((id, frame.data)),
-                    Message::HoldDone { count } => render.batch_expected = Some(count),
-                    Message::GiveBack { subscreen } => {
-                        let found = active.lock().expect("active lock").get(&subscreen).cloned();
-                        let from_row = found.map_or(u32::MAX, |a| a.give_back());
-                        let _ = fabric.send(
-                            0,
-                            &Message::Returned {
-                                subscreen,
-                                from_row,
-                            },
-                            Box::new([]),
-                            0,
-                        );
-                    }
-                    Message::StatsRequest => {
-                        let s = node_stats(&fabric, &stats, render.cache.as_deref());
-                        let _ = fabric.send_control(0, &Message::NodeStats(Box::new(s)));
-                    }
-                    Message::RunProbes {
-                        to,
-                        bytes,
-                        count,
-                        round_trip,
-                    } => {
-                        let f = fabric.clone();
-                        tokio::spawn(
-                            async move { run_probes(f, to, bytes, count, round_trip).await },
-                        );
-                    }
-                    Message::RunTransfers {
-                        transfer,
-                        bytes,
-                        count,
-                        owner_card,
-                        start_ns,
-                    } => {
-                        let f = fabric.clone();
-                        tokio::spawn(async move {
-                            run_transfers(f, transfer, bytes, count, owner_card, start_ns).await
-                        });
-                    }
-                    other => {
-                        tracing::debug!("render node {} ignores {}", fabric.me(), other.name())
-                    }
-                }
-                maybe_start(&fabric, &mut render, &active, &stats, &threads);
+                    Box::new([]),
+                    0,
+                );
             }
-            Delivery::Lost {
-                peer: 0,
-                kind: ConnectionKind::Control,
-                ..
+            Message::StatsRequest => {
+                let s = node_stats(
+                    fabric.me(),
+                    fabric.counters(),
+                    &self.stats,
+                    self.render.cache.as_deref(),
+                );
+                let _ = fabric.send_control(0, &Message::NodeStats(Box::new(s)));
+            }
+            Message::RunProbes {
+                to,
+                bytes,
+                count,
+                round_trip,
             } => {
-                tracing::error!("render node {}: lost the host; exiting", fabric.me());
-                fabric.begin_shutdown();
-                return Err(RenderNodeError::HostLost);
+                let f = fabric.clone();
+                tokio::spawn(
+                    async move { measure::run_probes(f, to, bytes, count, round_trip).await },
+                );
             }
-            Delivery::Lost { peer, kind, reason } => tracing::warn!(
-                "render node {}: lost {kind:?} connection to node {peer}: {reason}",
-                fabric.me()
-            ),
-            Delivery::Incoming { .. } => {}
+            Message::RunTransfers {
+                transfer,
+                bytes,
+                count,
+                owner_card,
+                start_ns,
+            } => {
+                let f = fabric.clone();
+                tokio::spawn(async move {
+                    measure::run_transfers(f, transfer, bytes, count, owner_card, start_ns).await
+                });
+            }
+            other => {
+                tracing::debug!("render node {} ignores {}", fabric.me(), other.name())
+            }
+        }
+        self.maybe_start();
+    }
+}
+
+impl RenderNode {
+    /// Starts the rendering threads once the header, the job and (for a batch job) all the
+    /// data are here; a render that cannot start is reported to the host, once.
+    fn maybe_start(&mut self) {
+        let fabric = &self.fabric;
+        let fork = fabric.topology().fork_of(fabric.me());
+        let started = start::decide(&self.render, fork).and_then(|ready| match ready {
+            Some(ready) => start::build_cache(fabric, &mut self.render, &ready)
+                .map(|cache| Some((ready, Arc::new(cache)))),
+            None => Ok(None),
+        });
+        match started {
+            Ok(None) => {}
+            Ok(Some((ready, cache))) => {
+                self.render.started = true;
+                self.render.cache = Some(cache.clone());
+                start::spawn_workers(fabric, ready, cache, &self.active, &self.stats);
+            }
+            Err(e) => {
+                self.render.started = true;
+                fail(fabric, &e.to_string());
+            }
         }
     }
 }
@@ -189,13 +172,14 @@ enum HeaderError {
     AddressTable,
 }
 
+/// The scene in a header's `data`, checked against the address table that came with it.
 fn decode_header(
-    frame: &Frame,
+    data: &[u32],
     len: u64,
     chunk_owner: &[NodeId],
     tile_owner: &[NodeId],
 ) -> Result<Scene, HeaderError> {
-    let bytes = words_to_bytes(&frame.data, len as usize).ok_or(HeaderError::Short)?;
+    let bytes = words_to_bytes(data, len as usize).ok_or(HeaderError::Short)?;
     let scene: Scene = decode_value(bytes)?;
     scene.validate()?;
     if chunk_owner.len() != scene.chunks.len() || tile_owner.len() != scene.tile_count as usize {
@@ -204,6 +188,7 @@ fn decode_header(
     Ok(scene)
 }
 
+/// Logs a failure and tells the host, which ends the render with this message.
 fn fail(fabric: &Fabric, message: &str) {
     tracing::error!("render node {}: {message}", fabric.me());
     let _ = fabric.send_control(
@@ -215,112 +200,19 @@ fn fail(fabric: &Fabric, message: &str) {
     );
 }
 
-/// Starts the rendering threads once the header, the job and (for a batch job) all the data
-/// are here.
-fn maybe_start(
-    fabric: &Fabric,
-    r: &mut Render,
-    active: &ActiveMap,
-    stats: &Arc<WorkStats>,
-    threads: &Arc<Mutex<Vec<std::thread::JoinHandle<()>>>>,
-) {
-    if r.started {
-        return;
-    }
-    let (Some(scene), Some(job)) = (r.scene.clone(), r.job.clone()) else {
-        return;
-    };
-    let Some(fork) = fabric.topology().fork_of(fabric.me()) else {
-        return;
-    };
-    let cache = match job.transfer {
-        TransferMode::Demand => {
-            let source = Source {
-                fabric: fabric.clone(),
-                runtime: tokio::runtime::Handle::current(),
-                fork,
-                chunk_owner: r.chunk_owner.clone(),
-                tile_owner: r.tile_owner.clone(),
-                via: job.demand_via,
-            };
-            let largest = scene
-                .chunks
-                .iter()
-                .map(|c| c.byte_len as u64)
-                .max()
-                .unwrap_or(0);
-            if largest > job.cache_bytes {
-                r.started = true;
-                fail(
-                    fabric,
-                    &format!(
-                        "the cache budget of {} bytes is smaller than the largest chunk ({largest} bytes)",
-                        job.cache_bytes
-                    ),
-                );
-                return;
-            }
-            DemandCache::new(
-                scene.chunk_rules(),
-                scene.tile_count as usize,
-                job.cache_bytes,
-                Some(source),
-            )
-        }
-        TransferMode::Batch => {
-            if r.batch_expected != Some(r.batch.len() as u32) {
-                return;
-            }
-            let cache = DemandCache::new(
-                scene.chunk_rules(),
-                scene.tile_count as usize,
-                u64::MAX,
-                None,
-            );
-            for (id, words) in r.batch.drain(..) {
-                if let Err(e) = cache.preload(id, words) {
-                    r.started = true;
-                    fail(fabric, &format!("batch data {id:?}: {e}"));
-                    return;
-                }
-            }
-            cache
-        }
-    };
-    r.started = true;
-    let cache = Arc::new(cache);
-    r.cache = Some(cache.clone());
-    for t in 0..job.render_threads.max(1) {
-        let worker = Worker {
-            fabric: fabric.clone(),
-            runtime: tokio::runtime::Handle::current(),
-            scene: scene.clone(),
-            job: job.clone(),
-            cache: cache.clone(),
-            fork,
-            active: active.clone(),
-            stats: stats.clone(),
-        };
-        let f = fabric.clone();
-        let handle = std::thread::Builder::new()
-            .name(format!("render-{t}"))
-            .spawn(move || {
-                if let Err(e) = worker.run() {
-                    fail(&f, &e.to_string());
-                }
-            })
-            .expect("spawn a rendering thread");
-        threads.lock().expect("threads lock").push(handle);
-    }
-}
-
-fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> NodeStats {
-    let c = fabric.counters();
-    let wait = cache.map_or(0, |c| c.stats.wait_ns.load(Ordering::Relaxed));
-    let render = w.render_ns.load(Ordering::Relaxed);
+/// This node's statistics for the host, from the fabric's counters, the rendering threads'
+/// counters and the cache's (none before rendering starts).
+fn node_stats(
+    me: NodeId,
+    c: CounterSnapshot,
+    w: &WorkStats,
+    cache: Option<&DemandCache>,
+) -> NodeStats {
     let g = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    let wait = cache.map_or(0, |c| g(&c.stats.wait_ns));
+    let render = g(&w.render_ns);
     NodeStats {
-        node: fabric.me(),
+        node: me,
         role: Some(Role::Render),
         subscreens: w.subscreens.load(Ordering::Relaxed),
         rows: g(&w.rows),
@@ -340,6 +232,7 @@ fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> No
         frames_forwarded: c.frames_forwarded,
         frames_around_mesh: c.frames_around_mesh,
         bytes_forwarded: c.bytes_forwarded,
+        // Time spent waiting for data is inside the rendering time; it is told apart.
         busy_s: render.saturating_sub(wait) as f64 * 1e-9,
         waiting_s: wait as f64 * 1e-9,
         idle_s: g(&w.idle_ns) as f64 * 1e-9,
@@ -348,99 +241,107 @@ fn node_stats(fabric: &Fabric, w: &WorkStats, cache: Option<&DemandCache>) -> No
     }
 }
 
-const TIMEOUT: Duration = Duration::from_secs(120);
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicU64;
 
-/// Sends `count` probes of about `bytes` to `to`, one at a time, and reports their one-way
-/// times (sender and receiver share CLOCK_MONOTONIC on one machine), or round trips.
-async fn run_probes(f: Fabric, to: NodeId, bytes: u32, count: u32, round_trip: bool) {
-    let mut samples = Vec::with_capacity(count as usize);
-    for id in 0..count {
-        let sent = now_ns();
-        let probe = Message::Probe { id, sent_ns: sent };
-        // Pad the frame to the requested size (the paper's figure is for 84-byte packets).
-        let bare = Frame::new(f.me(), to, &probe, Box::new([])).wire_len();
-        let pad = (bytes as usize).saturating_sub(bare).div_ceil(4);
-        match f
-            .request(
-                to,
-                &probe,
-                vec![0u32; pad].into_boxed_slice(),
-                Route::Mesh,
-                TIMEOUT,
-            )
-            .await
-        {
-            Ok(reply) => {
-                if let Ok(Message::ProbeEcho { received_ns, .. }) = reply.message() {
-                    samples.push(if round_trip {
-                        now_ns() - sent
-                    } else {
-                        received_ns.saturating_sub(sent)
-                    });
-                }
-            }
-            Err(e) => {
-                tracing::warn!("probe {id} to node {to} failed: {e}");
-                break;
-            }
-        }
-    }
-    let _ = f.send_control(
-        0,
-        &Message::Measured {
-            node: f.me(),
-            samples_ns: samples,
-        },
-    );
-}
+    use protocol::{bytes_to_words, encode_value};
 
-/// Measures `count` demand transfers of `bytes` from this card's fork node, the data held
-/// by card `owner_card`, starting together with the other nodes at `start_ns`.
-async fn run_transfers(
-    f: Fabric,
-    transfer: Transfer,
-    bytes: u32,
-    count: u32,
-    owner_card: u16,
-    start_ns: u64,
-) {
-    let t = f.topology();
-    let (Some(fork), Some(owner)) = (t.fork_of(f.me()), t.fork_of_card(owner_card)) else {
-        let _ = f.send_control(
-            0,
-            &Message::Measured {
-                node: f.me(),
-                samples_ns: Vec::new(),
-            },
-        );
-        return;
-    };
-    f.timer().sleep_until(start_ns).await;
-    let mut samples = Vec::with_capacity(count as usize);
-    for _ in 0..count {
-        let t0 = now_ns();
-        let request = Message::DataRequest {
-            id: DataId::Synthetic { bytes },
-            transfer,
-            owner,
+    use super::*;
+
+    fn demo() -> Scene {
+        let opts = renderer::PrepareOptions {
+            chunk_triangles: 64,
         };
-        match f
-            .request(fork, &request, Box::new([]), Route::Mesh, TIMEOUT)
-            .await
-        {
-            Ok(reply) if reply.data.len() * 4 >= bytes as usize => samples.push(now_ns() - t0),
-            Ok(_) => tracing::warn!("short reply to a transfer of {bytes} bytes"),
-            Err(e) => {
-                tracing::warn!("transfer of {bytes} bytes failed: {e}");
-                break;
-            }
-        }
+        renderer::prepare(renderer::demo::demo_scene(), &opts).0
     }
-    let _ = f.send_control(
-        0,
-        &Message::Measured {
-            node: f.me(),
-            samples_ns: samples,
-        },
-    );
+
+    fn header(scene: &Scene) -> (Box<[u32]>, u64) {
+        let bytes = encode_value(scene);
+        (bytes_to_words(&bytes), bytes.len() as u64)
+    }
+
+    #[test]
+    fn decode_header_accepts_a_scene_with_its_address_table() {
+        let scene = demo();
+        let (words, len) = header(&scene);
+        let chunks = vec![1; scene.chunks.len()];
+        let tiles = vec![1; scene.tile_count as usize];
+        let decoded = decode_header(&words, len, &chunks, &tiles).unwrap();
+        assert_eq!(decoded.chunks.len(), scene.chunks.len());
+        assert_eq!(decoded.tile_count, scene.tile_count);
+    }
+
+    #[test]
+    fn decode_header_refuses_a_header_shorter_than_it_says() {
+        let (words, len) = header(&demo());
+        let err = decode_header(&words, len + 4, &[], &[]).unwrap_err();
+        assert!(matches!(err, HeaderError::Short), "{err}");
+    }
+
+    #[test]
+    fn decode_header_refuses_bytes_that_are_not_a_scene() {
+        let words = bytes_to_words(&[0xff; 16]);
+        let err = decode_header(&words, 16, &[], &[]).unwrap_err();
+        assert!(matches!(err, HeaderError::Decode(_)), "{err}");
+    }
+
+    #[test]
+    fn decode_header_refuses_an_address_table_of_another_scene() {
+        let scene = demo();
+        let (words, len) = header(&scene);
+        let tiles = vec![1; scene.tile_count as usize];
+        let short = vec![1; scene.chunks.len() - 1];
+        let err = decode_header(&words, len, &short, &tiles).unwrap_err();
+        assert!(matches!(err, HeaderError::AddressTable), "{err}");
+        let chunks = vec![1; scene.chunks.len()];
+        let more_tiles = vec![1; scene.tile_count as usize + 1];
+        let err = decode_header(&words, len, &chunks, &more_tiles).unwrap_err();
+        assert!(matches!(err, HeaderError::AddressTable), "{err}");
+    }
+
+    #[test]
+    fn node_stats_before_rendering_has_only_the_fabric_counters() {
+        let counters = CounterSnapshot {
+            frames_forwarded: 7,
+            frames_around_mesh: 2,
+            bytes_forwarded: 900,
+            ..CounterSnapshot::default()
+        };
+        let s = node_stats(5, counters, &WorkStats::default(), None);
+        assert_eq!(s.node, 5);
+        assert_eq!(s.role, Some(Role::Render));
+        assert_eq!(
+            (s.frames_forwarded, s.frames_around_mesh, s.bytes_forwarded),
+            (7, 2, 900)
+        );
+        assert_eq!((s.rows, s.cache_hits, s.bytes_fetched_dma), (0, 0, 0));
+        assert_eq!((s.busy_s, s.waiting_s), (0.0, 0.0));
+    }
+
+    #[test]
+    fn node_stats_counts_waiting_for_data_apart_from_rendering() {
+        let work = WorkStats {
+            rows: AtomicU64::new(12),
+            render_ns: AtomicU64::new(3_000_000_000),
+            idle_ns: AtomicU64::new(500_000_000),
+            ..WorkStats::default()
+        };
+        let scene = demo();
+        let cache = DemandCache::new(
+            scene.chunk_rules(),
+            scene.tile_count as usize,
+            1 << 30,
+            None,
+        );
+        cache.stats.wait_ns.store(1_000_000_000, Ordering::Relaxed);
+        cache.stats.hits.store(40, Ordering::Relaxed);
+        cache.stats.bytes_serial.store(4096, Ordering::Relaxed);
+        let s = node_stats(3, CounterSnapshot::default(), &work, Some(&cache));
+        assert_eq!(s.rows, 12);
+        assert_eq!((s.cache_hits, s.bytes_fetched_serial), (40, 4096));
+        assert!((s.busy_s - 2.0).abs() < 1e-9, "{}", s.busy_s);
+        assert!((s.waiting_s - 1.0).abs() < 1e-9, "{}", s.waiting_s);
+        assert!((s.idle_s - 0.5).abs() < 1e-9, "{}", s.idle_s);
+    }
 }

@@ -1,0 +1,105 @@
+//! The life every node role shares, written once: join the cluster, take deliveries in
+//! order, answer diagnostics, obey the host's shutdown and node-down notices, leave.
+//!
+//! The fork node and the render node differ only in what they do with the rest of their
+//! messages; each says that in a [`RoleHandler`]. Keeping the loop here means a change to
+//! how nodes stop, or to what counts as losing the host, is made for both roles at once.
+
+use protocol::{ConnectionKind, Frame, Message};
+
+use crate::{
+    Delivery, Fabric, Via,
+    cluster::{ClusterError, JoinConfig, join, leave},
+};
+
+/// Why a node role ended other than by the host's shutdown.
+#[derive(Debug, thiserror::Error)]
+pub enum RoleError {
+    #[error("joining the cluster: {0}")]
+    Join(#[from] ClusterError),
+    #[error("lost the connection to the host")]
+    HostLost,
+}
+
+/// What a role does with the messages the shared loop leaves to it.
+pub trait RoleHandler {
+    /// How the role names itself in the log ("fork node"), so that every line about the
+    /// shared life reads the same as the role's own.
+    const NAME: &'static str;
+
+    /// A decoded message that is neither a diagnostic nor the host's shutdown or node-down
+    /// notice. Runs on the node's runtime, so it may spawn tasks but must not block.
+    fn on_message(&mut self, frame: Frame, message: Message, via: Via);
+}
+
+/// Joins the cluster, builds the role's handler from the joined fabric, and runs it until
+/// the host says stop (`Ok`) or goes away (`Err(RoleError::HostLost)`).
+pub async fn run_role<H: RoleHandler>(
+    config: JoinConfig,
+    make_handler: impl FnOnce(&Fabric) -> H,
+) -> Result<(), RoleError> {
+    let joined = join(config).await?;
+    let fabric = joined.fabric.clone();
+    let mut inbox = joined.inbox;
+    let mut handler = make_handler(&fabric);
+    let name = H::NAME;
+    tracing::info!("{name} {} ready", fabric.me());
+    let mut early = joined.early;
+    loop {
+        // What arrived before the host said go comes first, last arrival first: the order
+        // both roles had before this loop was shared, kept so that behaviour did not move.
+        let delivery = match early.pop() {
+            Some(d) => d,
+            None => match inbox.recv().await {
+                Some(d) => d,
+                None => return Err(RoleError::HostLost),
+            },
+        };
+        match delivery {
+            Delivery::Frame { frame, via } => {
+                let message = match frame.message() {
+                    Ok(m) => m,
+                    Err(e) => {
+                        tracing::warn!("undecodable frame from node {}: {e}", frame.header.sender);
+                        continue;
+                    }
+                };
+                if crate::diag::handle(&fabric, &frame, &message) {
+                    continue;
+                }
+                // Only the host, on its control connection, may stop this node or declare
+                // another dead; the same messages by any other way go to the role, which
+                // ignores them.
+                match (&message, via) {
+                    (Message::Shutdown { reason }, Via::Control(0)) => {
+                        tracing::info!("{name} {} stopping: {reason}", fabric.me());
+                        leave(&fabric).await;
+                        return Ok(());
+                    }
+                    (Message::NodeDown { node }, Via::Control(0)) => {
+                        tracing::warn!(
+                            "{name} {}: node {node} is gone; routing around it",
+                            fabric.me()
+                        );
+                        fabric.mark_dead(*node);
+                    }
+                    _ => handler.on_message(frame, message, via),
+                }
+            }
+            Delivery::Lost {
+                peer: 0,
+                kind: ConnectionKind::Control,
+                ..
+            } => {
+                tracing::error!("{name} {}: lost the host; exiting", fabric.me());
+                fabric.begin_shutdown();
+                return Err(RoleError::HostLost);
+            }
+            Delivery::Lost { peer, kind, reason } => tracing::warn!(
+                "{name} {}: lost {kind:?} connection to node {peer}: {reason}",
+                fabric.me()
+            ),
+            Delivery::Incoming { .. } => {}
+        }
+    }
+}
