@@ -44,11 +44,10 @@ pub async fn run_role<H: RoleHandler>(
     let mut handler = make_handler(&fabric);
     let name = H::NAME;
     tracing::info!("{name} {} ready", fabric.me());
-    let mut early = joined.early;
+    // What arrived before the host said go comes first, in the order it arrived.
+    let mut early = std::collections::VecDeque::from(joined.early);
     loop {
-        // What arrived before the host said go comes first, last arrival first: the order
-        // both roles had before this loop was shared, kept so that behaviour did not move.
-        let delivery = match early.pop() {
+        let delivery = match early.pop_front() {
             Some(d) => d,
             None => match inbox.recv().await {
                 Some(d) => d,
