@@ -14,6 +14,7 @@ pub mod plot;
 pub mod progress;
 pub mod runs;
 pub mod scene_source;
+pub mod schedule;
 pub mod spawn;
 pub mod stats;
 
