@@ -66,7 +66,7 @@ pub enum ClusterRenderError {
         #[source]
         source: protocol::DecodeError,
     },
-    #[error("the scene header from fork node {node} does not hold together")]
+    #[error("the scene header from fork node {node} failed its checks")]
     HeaderInvalid {
         node: NodeId,
         #[source]
@@ -272,6 +272,9 @@ impl Faults {
             after_s: self.started.elapsed().as_secs_f64(),
             subscreens_reassigned: 0,
         };
+        // Re-homing the render nodes of a lost fork node on another would go here (with
+        // `Scheduler::take_back` for the rows they had on their way); until then the render
+        // cannot go on.
         if role != Role::Render {
             return Err(ClusterRenderError::ForkNodeLost {
                 node: Box::new(lost),

@@ -56,7 +56,7 @@ pub enum Action {
     Store { x: u32, y: u32, width: u32 },
     /// The first pixels of `subscreen` since it was handed to `node` arrived: it is rendering.
     FirstPixels { node: NodeId, subscreen: u32 },
-    /// The lost `node` held `subscreens` subscreens with rows missing; they are queued again.
+    /// `node` (lost) held `subscreens` subscreens with rows missing; they are queued again.
     Reassigned { node: NodeId, subscreens: u32 },
     /// Rows of a finished `subscreen` never arrived (lost with a node on their way); they are
     /// queued again.
@@ -427,32 +427,30 @@ impl Scheduler {
     /// `node` is lost: its waiting requests are dropped and its subscreens with rows still
     /// missing go back to the queue, first in line.
     pub fn node_lost(&mut self, node: NodeId) -> Vec<Action> {
-        let mut actions = Vec::new();
         if !self.serves(node) {
-            return actions;
+            return Vec::new();
         }
         self.lost.insert(node);
         self.parked.retain(|r| r.node != node);
-        let subscreens = self.take_back(node);
-        actions.push(Action::Reassigned { node, subscreens });
-        self.hand_out(&mut actions);
-        actions
+        self.take_back(node)
     }
 
-    /// Queues again the rows still missing of every subscreen `node` was given; returns how
-    /// many subscreens that was. Losing a node is one reason; a node whose rows on their way
-    /// may have been lost while it goes on (its fork node lost and it re-homed) would be
-    /// another.
-    fn take_back(&mut self, node: NodeId) -> u32 {
-        let mut taken = 0;
+    /// Queues again, first in line, the rows still missing of every subscreen `node` was
+    /// given, and hands them out. Losing the node is one reason; rows on their way lost
+    /// while the node goes on (its fork node lost and the node re-homed to another) would be
+    /// another, which is why the node is not declared lost here.
+    pub fn take_back(&mut self, node: NodeId) -> Vec<Action> {
+        let mut subscreens = 0;
         for id in 0..self.subscreens.len() {
             let s = &self.subscreens[id];
             if s.node == Some(node) && self.arrived.rows_missing(s.rect) > 0 {
-                taken += 1;
+                subscreens += 1;
                 self.requeue_missing(id);
             }
         }
-        taken
+        let mut actions = vec![Action::Reassigned { node, subscreens }];
+        self.hand_out(&mut actions);
+        actions
     }
 
     /// The time is `now`: reports a stall, and once a node was lost, queues again the rows of
@@ -831,6 +829,26 @@ mod tests {
         assert_eq!(
             s.request(ask(B, 3), None, clock.at(2)),
             vec![given(ask(B, 3), 2, rect(0, 4, 2, 2))]
+        );
+    }
+
+    #[test]
+    fn work_taken_back_from_a_node_still_there_may_go_to_it_again() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
+        s.request(ask(A, 1), None, clock.at(0));
+        s.request(ask(B, 1), None, clock.at(0));
+        rows(&mut s, 0, 2, 0..1);
+        assert_eq!(
+            s.take_back(A),
+            vec![Action::Reassigned {
+                node: A,
+                subscreens: 1
+            }]
+        );
+        assert_eq!(
+            s.request(ask(A, 2), None, clock.at(1)),
+            vec![given(ask(A, 2), 0, rect(0, 1, 2, 1))]
         );
     }
 
