@@ -3,14 +3,13 @@
 //! The host reads the scene and sends it to the first fork node, which prepares and places
 //! it and returns the header. The host then fixes the camera and settings exactly as an
 //! in-process render would, sends every node the job, and hands out subscreens as render
-//! nodes ask (the paper's simple dynamic load balancing). With `adaptive`, once no
-//! subscreen is left, an idle node's request makes the host ask the busiest node to give back
-//! the unbegun half of its subscreen (the paper's announced adaptive redivision). Pixel rows
-//! reach the host's frame buffer through the fork nodes; when every pixel is in, the host
-//! writes the image, collects every node's statistics and stops the cluster.
+//! nodes ask. Pixel rows reach the host's frame buffer through the fork nodes; when every
+//! pixel is in, the host writes the image, collects every node's statistics and stops the
+//! cluster. This module does the talking; who gets which subscreen, and when, is decided by
+//! [`crate::schedule`], which does none, so that those rules can be tested without processes.
 
 use std::{
-    collections::{HashMap, VecDeque},
+    collections::HashMap,
     sync::atomic::{AtomicBool, Ordering},
     time::{Duration, Instant},
 };
@@ -27,6 +26,7 @@ use crate::{
     cluster::{Cluster, ClusterConfig, start},
     inprocess::{RenderConfig, RenderError, check_settings},
     progress::Progress,
+    schedule::{self, Action, Answer, Request, Scheduler},
     stats::RenderStats,
 };
 
@@ -43,14 +43,60 @@ pub struct ClusterRenderConfig {
     pub render_threads: u32,
 }
 
+/// Why a cluster render stopped without an image.
 #[derive(Debug, thiserror::Error)]
 pub enum ClusterRenderError {
     #[error(transparent)]
     Render(#[from] RenderError),
     #[error(transparent)]
     Start(#[from] crate::cluster::StartError),
-    #[error("{0}")]
-    Failed(String),
+    #[error("the scene could not be sent to fork node {node}")]
+    SendScene {
+        node: NodeId,
+        #[source]
+        source: fabric::SendError,
+    },
+    #[error("fork node {node} could not prepare the scene: {reason}")]
+    SceneRefused { node: NodeId, reason: String },
+    #[error("the scene header from fork node {node} is shorter than the {len} bytes it announces")]
+    ShortHeader { node: NodeId, len: u64 },
+    #[error("the scene header from fork node {node} could not be decoded")]
+    HeaderDecode {
+        node: NodeId,
+        #[source]
+        source: protocol::DecodeError,
+    },
+    #[error("the scene header from fork node {node} failed its checks")]
+    HeaderInvalid {
+        node: NodeId,
+        #[source]
+        source: renderer::scene::SceneError,
+    },
+    #[error(
+        "a cache of {percent}% ({cache_bytes} bytes) cannot hold the largest chunk ({largest} bytes); use a larger --cache"
+    )]
+    CacheTooSmall {
+        percent: f64,
+        cache_bytes: u64,
+        largest: u64,
+    },
+    #[error("the job could not be sent to node {node}")]
+    SendJob {
+        node: NodeId,
+        #[source]
+        source: fabric::SendError,
+    },
+    #[error("node {node} failed: {message}")]
+    NodeFailed { node: NodeId, message: String },
+    #[error(
+        "lost {}: {}; the render cannot go on without its share of the scene, so the cluster is stopped and no image is written",
+        .node.who(), .node.reason
+    )]
+    ForkNodeLost { node: Box<LostNode> },
+    #[error("every render node is lost; no image is written")]
+    NoRenderNodeLeft,
+    #[error("the host's fabric stopped, so no message can reach it")]
+    FabricStopped,
     #[error("interrupted")]
     Interrupted,
 }
@@ -130,93 +176,6 @@ pub fn subscreens(width: u32, height: u32, n: u32) -> Vec<Rect> {
     out
 }
 
-struct Sub {
-    rect: Rect,
-    node: Option<NodeId>,
-    /// Whether pixels of it have arrived since it was last handed out.
-    pixels_seen: bool,
-    giving_back: bool,
-    /// When its node said it had sent every row.
-    finished_at: Option<Instant>,
-}
-
-impl Sub {
-    fn new(rect: Rect) -> Sub {
-        Sub {
-            rect,
-            node: None,
-            pixels_seen: false,
-            giving_back: false,
-            finished_at: None,
-        }
-    }
-}
-
-/// After a node is lost, rows of a finished subscreen that have not arrived this long after
-/// its node finished it are taken as lost on the way (in the dead node) and rendered again.
-const LOST_ROWS_GRACE: Duration = Duration::from_secs(2);
-
-/// The frame buffer and which pixels have arrived.
-struct FrameBuffer {
-    image: Image,
-    have: Vec<bool>,
-    missing: u64,
-}
-
-impl FrameBuffer {
-    fn put(&mut self, x: u32, y: u32, width: u32, data: &[u32]) -> u64 {
-        let w = self.image.width;
-        if y >= self.image.height || x >= w || width > w - x || data.len() != width as usize * 3 {
-            return 0;
-        }
-        let px: &[[f32; 3]] = bytemuck::cast_slice(data);
-        let mut new = 0;
-        for (i, p) in px.iter().enumerate() {
-            let at = (y * w + x + i as u32) as usize;
-            if !self.have[at] {
-                self.have[at] = true;
-                self.image.pixels[at] = *p;
-                new += 1;
-            }
-        }
-        self.missing -= new;
-        new
-    }
-
-    fn row_missing(&self, r: Rect, y: u32) -> bool {
-        (r.x..r.x + r.width).any(|x| !self.have[(y * self.image.width + x) as usize])
-    }
-
-    fn rows_missing(&self, r: Rect) -> u32 {
-        (r.y..r.y + r.height)
-            .filter(|&y| self.row_missing(r, y))
-            .count() as u32
-    }
-
-    /// The runs of rows of `r` that still miss pixels, as rectangles.
-    fn missing_runs(&self, r: Rect) -> Vec<Rect> {
-        let mut runs = Vec::new();
-        let mut start = None;
-        for y in r.y..=r.y + r.height {
-            let missing = y < r.y + r.height && self.row_missing(r, y);
-            match (missing, start) {
-                (true, None) => start = Some(y),
-                (false, Some(y0)) => {
-                    runs.push(Rect {
-                        x: r.x,
-                        y: y0,
-                        width: r.width,
-                        height: y - y0,
-                    });
-                    start = None;
-                }
-                _ => {}
-            }
-        }
-        runs
-    }
-}
-
 /// Renders on a cluster; returns the statistics written to `--stats`.
 pub async fn render_on_cluster(
     config: &ClusterRenderConfig,
@@ -270,9 +229,7 @@ async fn next(
             Ok(None)
         }
         Ok(Some(d)) => Ok(Some(d)),
-        Ok(None) => Err(ClusterRenderError::Failed(
-            "the host's fabric stopped".into(),
-        )),
+        Ok(None) => Err(ClusterRenderError::FabricStopped),
         Err(_) => Ok(None),
     }
 }
@@ -315,11 +272,13 @@ impl Faults {
             after_s: self.started.elapsed().as_secs_f64(),
             subscreens_reassigned: 0,
         };
+        // Re-homing the render nodes of a lost fork node on another would go here (with
+        // `Scheduler::take_back` for the rows they had on their way); until then the render
+        // cannot go on.
         if role != Role::Render {
-            return Err(ClusterRenderError::Failed(format!(
-                "lost {}: {reason}; the render cannot go on without its share of the scene, so the cluster is stopped and no image is written",
-                lost.who()
-            )));
+            return Err(ClusterRenderError::ForkNodeLost {
+                node: Box::new(lost),
+            });
         }
         tracing::warn!(
             "lost {}: {reason}; its unfinished subscreens go to other nodes, and routes go around it",
@@ -333,9 +292,7 @@ impl Faults {
         }
         self.lost.push(lost);
         if !topo.render_nodes().into_iter().any(|n| f.is_alive(n)) {
-            return Err(ClusterRenderError::Failed(
-                "every render node is lost; no image is written".into(),
-            ));
+            return Err(ClusterRenderError::NoRenderNodeLeft);
         }
         Ok(true)
     }
@@ -350,14 +307,61 @@ async fn drive(
 ) -> Result<ClusterStats, ClusterRenderError> {
     let rc = &config.render;
     let f = cluster.formed.fabric.clone();
-    let topo = f.topology().clone();
-    let master = topo.master_fork();
     let mut faults = Faults {
         started: t0,
         lost: Vec::new(),
     };
+    upload_scene(&f, desc, rc.prepare.chunk_triangles as u32)?;
+    let scene = await_header(cluster, cancel, &mut faults).await?;
+    let load_s = t0.elapsed().as_secs_f64();
+    let plan = plan_job(config, &scene, f.topology().render_nodes())?;
+    send_job(&f, &plan.job)?;
 
-    // The scene to the first fork node, in parts that fit a frame.
+    let t1 = Instant::now();
+    let mut frame = Rendering::new(config, &plan, &faults, f.clone(), t1);
+    frame.run(cluster, cancel, &mut faults).await?;
+    let render_s = t1.elapsed().as_secs_f64();
+    frame.finish(&mut faults);
+    drain_requests(cluster, &f).await;
+
+    let t2 = Instant::now();
+    scene_io::write_image(&rc.output, &frame.image).map_err(RenderError::Output)?;
+    let write_s = t2.elapsed().as_secs_f64();
+
+    let nodes = collect_node_stats(cluster).await;
+    let seconds = crate::stats::Seconds {
+        load: load_s,
+        render: render_s,
+        write: write_s,
+        total: t0.elapsed().as_secs_f64(),
+    };
+    let stats = cluster_stats(
+        config,
+        cluster,
+        Finished {
+            scene: &scene,
+            plan: &plan,
+            subscreens: frame.scheduler.planned(),
+            subscreens_split: frame.scheduler.split(),
+            nodes,
+            lost_nodes: faults.lost,
+            seconds,
+        },
+    );
+    if let Some(p) = &rc.stats {
+        let json = serde_json::to_vec_pretty(&stats).unwrap_or_default();
+        scene_io::image_io::write_atomic(p, &json).map_err(RenderError::Output)?;
+    }
+    Ok(stats)
+}
+
+/// Sends the scene to the first fork node, in parts that fit a frame.
+fn upload_scene(
+    f: &fabric::Fabric,
+    desc: renderer::SceneDesc,
+    chunk_triangles: u32,
+) -> Result<(), ClusterRenderError> {
+    let master = f.topology().master_fork();
     let bytes = encode_value(&desc);
     drop(desc);
     const PART: usize = 16 << 20;
@@ -368,15 +372,25 @@ async fn drive(
             parts,
             total: bytes.len() as u64,
             len: part.len() as u32,
-            chunk_triangles: rc.prepare.chunk_triangles as u32,
+            chunk_triangles,
         };
         f.send_direct(master, &msg, bytes_to_words(part), 0, 0)
-            .map_err(|e| ClusterRenderError::Failed(e.to_string()))?;
+            .map_err(|source| ClusterRenderError::SendScene {
+                node: master,
+                source,
+            })?;
     }
-    drop(bytes);
+    Ok(())
+}
 
-    // The prepared header comes back.
-    let scene: Scene = loop {
+/// Waits for the prepared scene's header from the first fork node.
+async fn await_header(
+    cluster: &mut Cluster,
+    cancel: &AtomicBool,
+    faults: &mut Faults,
+) -> Result<Scene, ClusterRenderError> {
+    let master = cluster.formed.fabric.topology().master_fork();
+    loop {
         let Some(delivery) = next(cluster, cancel).await? else {
             continue;
         };
@@ -384,37 +398,62 @@ async fn drive(
             Delivery::Frame {
                 frame,
                 via: Via::Direct(_),
-            } => match frame.message() {
-                Ok(Message::Header { len, .. }) => {
-                    let b = words_to_bytes(&frame.data, len as usize)
-                        .ok_or_else(|| ClusterRenderError::Failed("short scene header".into()))?;
-                    let s: Scene = decode_value(b)
-                        .map_err(|e| ClusterRenderError::Failed(format!("scene header: {e}")))?;
-                    s.validate()
-                        .map_err(|e| ClusterRenderError::Failed(e.to_string()))?;
-                    break s;
+            } => {
+                if let Ok(Message::Header { len, .. }) = frame.message() {
+                    return read_header(&frame, len);
                 }
-                _ => continue,
-            },
+            }
             Delivery::Frame {
                 frame,
                 via: Via::Control(_),
-            } => {
-                if let Ok(Message::Failed { node, message }) = frame.message() {
-                    return Err(ClusterRenderError::Failed(format!(
-                        "node {node}: {message}"
-                    )));
+            } => match frame.message() {
+                Ok(Message::Failed { node, message }) if node == master => {
+                    return Err(ClusterRenderError::SceneRefused {
+                        node,
+                        reason: message,
+                    });
                 }
-            }
+                Ok(Message::Failed { node, message }) => {
+                    return Err(ClusterRenderError::NodeFailed { node, message });
+                }
+                _ => {}
+            },
             Delivery::Lost { peer, reason, .. } => {
                 faults.on_lost(cluster, peer, &reason)?;
             }
             _ => {}
         }
-    };
-    let load_s = t0.elapsed().as_secs_f64();
+    }
+}
 
-    // Camera and settings exactly as in one process.
+/// The scene of a header frame, checked as the render nodes check it.
+fn read_header(frame: &Frame, len: u64) -> Result<Scene, ClusterRenderError> {
+    let node = frame.header.sender;
+    let bytes = words_to_bytes(&frame.data, len as usize)
+        .ok_or(ClusterRenderError::ShortHeader { node, len })?;
+    let scene: Scene =
+        decode_value(bytes).map_err(|source| ClusterRenderError::HeaderDecode { node, source })?;
+    scene
+        .validate()
+        .map_err(|source| ClusterRenderError::HeaderInvalid { node, source })?;
+    Ok(scene)
+}
+
+/// What every node is told to do, and how the image is cut.
+struct JobPlan {
+    job: JobSpec,
+    subscreens: Vec<Rect>,
+    render_nodes: Vec<NodeId>,
+}
+
+/// Fixes the camera and settings exactly as a render in one process would, the cache of
+/// each render node, and the subscreens.
+fn plan_job(
+    config: &ClusterRenderConfig,
+    scene: &Scene,
+    render_nodes: Vec<NodeId>,
+) -> Result<JobPlan, ClusterRenderError> {
+    let rc = &config.render;
     let mut settings = rc.settings.clone();
     let aspect = settings.width as f32 / settings.height as f32;
     let camera = scene
@@ -435,13 +474,13 @@ async fn drive(
         .max()
         .unwrap_or(0);
     if config.transfer == TransferMode::Demand && cache_bytes < largest {
-        return Err(ClusterRenderError::Failed(format!(
-            "a cache of {}% ({cache_bytes} bytes) cannot hold the largest chunk ({largest} bytes); use a larger --cache",
-            config.cache_percent
-        )));
+        return Err(ClusterRenderError::CacheTooSmall {
+            percent: config.cache_percent,
+            cache_bytes,
+            largest,
+        });
     }
-    let render_nodes = topo.render_nodes();
-    let rects = subscreens(
+    let subscreens = subscreens(
         settings.width,
         settings.height,
         config.subscreens.unwrap_or(8 * render_nodes.len() as u32),
@@ -455,211 +494,269 @@ async fn drive(
         settings.height,
         settings.spp,
         settings.integrator,
-        rects.len(),
+        subscreens.len(),
         render_nodes.len(),
         config.transfer
     );
     let job = JobSpec {
-        settings: settings.clone(),
+        settings,
         camera,
         transfer: config.transfer,
         demand_via: config.demand_via,
         cache_bytes,
         render_threads: config.render_threads,
     };
-    for n in 1..topo.len() as NodeId {
-        if f.is_alive(n) {
-            f.send_control(n, &Message::Job(Box::new(job.clone())))
-                .map_err(|e| ClusterRenderError::Failed(e.to_string()))?;
+    Ok(JobPlan {
+        job,
+        subscreens,
+        render_nodes,
+    })
+}
+
+/// Sends the job to every live node.
+fn send_job(f: &fabric::Fabric, job: &JobSpec) -> Result<(), ClusterRenderError> {
+    for node in 1..f.topology().len() as NodeId {
+        if f.is_alive(node) {
+            f.send_control(node, &Message::Job(Box::new(job.clone())))
+                .map_err(|source| ClusterRenderError::SendJob { node, source })?;
+        }
+    }
+    Ok(())
+}
+
+/// A run of pixels as it arrived, for [`Action::Store`] to copy from.
+struct Run<'a> {
+    x: u32,
+    y: u32,
+    data: &'a [u32],
+}
+
+/// One frame being rendered: the messages in and out around the [`Scheduler`]'s decisions,
+/// and the image they fill.
+struct Rendering {
+    scheduler: Scheduler,
+    image: Image,
+    /// The frames of requests for work not answered yet, to answer them by.
+    requests: HashMap<Request, Frame>,
+    progress: Progress,
+    f: fabric::Fabric,
+}
+
+impl Rendering {
+    fn new(
+        config: &ClusterRenderConfig,
+        plan: &JobPlan,
+        faults: &Faults,
+        f: fabric::Fabric,
+        now: Instant,
+    ) -> Rendering {
+        let (width, height) = (plan.job.settings.width, plan.job.settings.height);
+        let mut scheduler = Scheduler::new(
+            schedule::Plan {
+                width,
+                height,
+                subscreens: plan.subscreens.clone(),
+                render_nodes: plan.render_nodes.clone(),
+                adaptive: config.adaptive,
+            },
+            now,
+        );
+        // Render nodes lost while the scene was placed held no work, yet their loss still
+        // makes finished subscreens suspect.
+        for lost in &faults.lost {
+            scheduler.node_lost(lost.node);
+        }
+        let total = width as u64 * height as u64;
+        Rendering {
+            scheduler,
+            image: Image::new(width, height),
+            requests: HashMap::new(),
+            progress: Progress::new(total, config.render.progress),
+            f,
         }
     }
 
-    // Hand out subscreens and collect pixels.
-    let t1 = Instant::now();
-    let total = settings.width as u64 * settings.height as u64;
-    let progress = Progress::new(total, rc.progress);
-    let mut fb = FrameBuffer {
-        image: Image::new(settings.width, settings.height),
-        have: vec![false; total as usize],
-        missing: total,
-    };
-    let mut subs: Vec<Sub> = rects.iter().map(|&rect| Sub::new(rect)).collect();
-    let mut work = Work {
-        queue: (0..subs.len() as u32).collect(),
-        parked: VecDeque::new(),
-        answered: HashMap::new(),
-    };
-    let mut split = 0u32;
-    let original = subs.len() as u32;
-    let mut last_sweep = Instant::now();
-    let (mut last_missing, mut last_progress) = (fb.missing, Instant::now());
-    while fb.missing > 0 {
-        // `None`: nothing arrived for a tick; only the timed duties after the match run.
-        match next(cluster, cancel).await? {
-            Some(Delivery::Frame { frame, via }) => {
-                let Ok(msg) = frame.message() else { continue };
-                let sender = frame.header.sender;
-                // A lost node's late words change nothing (its pixels still count).
-                if !f.is_alive(sender) && !matches!(msg, Message::Pixels { .. }) {
-                    continue;
+    /// Hands out subscreens and collects pixels until the image is complete.
+    async fn run(
+        &mut self,
+        cluster: &mut Cluster,
+        cancel: &AtomicBool,
+        faults: &mut Faults,
+    ) -> Result<(), ClusterRenderError> {
+        while !self.scheduler.is_complete() {
+            // `None`: nothing arrived for a tick; only the timed duties run.
+            match next(cluster, cancel).await? {
+                Some(Delivery::Frame { frame, via }) => self.on_frame(frame, via, faults)?,
+                Some(Delivery::Lost { peer, reason, .. }) => {
+                    self.on_lost(cluster, peer, &reason, faults)?;
                 }
-                match msg {
-                    Message::SubscreenRequest { finished } => {
-                        let key = (sender, frame.header.tag);
-                        if let Some(answer) = work.answered.get(&key) {
-                            // Sent again after a node was lost: the answer may have been too.
-                            let _ = f.reply(&frame, answer, Box::new([]), fabric::Route::Mesh, 0);
-                            continue;
-                        }
-                        if work
-                            .parked
-                            .iter()
-                            .any(|p| (p.header.sender, p.header.tag) == key)
-                        {
-                            continue;
-                        }
-                        if let Some(s) = finished.and_then(|id| subs.get_mut(id as usize))
-                            && s.node == Some(sender)
-                        {
-                            s.finished_at = Some(Instant::now());
-                            s.giving_back = false;
-                        }
-                        work.parked.push_back(frame);
-                        work.hand_out(&f, &mut subs);
-                        if config.adaptive && !work.parked.is_empty() {
-                            ask_give_back(&f, &mut subs, &fb);
-                        }
-                    }
-                    Message::Returned {
-                        subscreen,
-                        from_row,
-                    } => {
-                        let Some(s) = subs.get_mut(subscreen as usize) else {
-                            continue;
-                        };
-                        if s.node != Some(sender) {
-                            continue;
-                        }
-                        s.giving_back = false;
-                        if from_row < s.rect.height {
-                            let r = s.rect;
-                            s.rect.height = from_row;
-                            subs.push(Sub::new(Rect {
-                                x: r.x,
-                                y: r.y + from_row,
-                                width: r.width,
-                                height: r.height - from_row,
-                            }));
-                            split += 1;
-                            work.queue.push_back(subs.len() as u32 - 1);
-                        }
-                        work.hand_out(&f, &mut subs);
-                        if !work.parked.is_empty() {
-                            ask_give_back(&f, &mut subs, &fb);
-                        }
-                    }
-                    Message::Pixels {
-                        subscreen,
-                        x,
-                        y,
-                        width,
-                    } if matches!(via, Via::Direct(_)) && fb.put(x, y, width, &frame.data) > 0 => {
-                        progress.update(total - fb.missing, total);
-                        if let Some(s) = subs.get_mut(subscreen as usize)
-                            && !s.pixels_seen
-                        {
-                            s.pixels_seen = true;
-                            if let Some(node) = s.node {
-                                event_first_pixels(node, subscreen);
-                            }
-                        }
-                    }
-                    Message::Failed { node, message } => {
-                        return Err(ClusterRenderError::Failed(format!(
-                            "node {node}: {message}"
-                        )));
-                    }
-                    _ => {}
+                _ => {}
+            }
+            let actions = self.scheduler.tick(Instant::now());
+            self.perform(actions, None, faults);
+        }
+        self.progress.finish();
+        Ok(())
+    }
+
+    /// The connection to `peer` ended: a render node's work goes to others.
+    fn on_lost(
+        &mut self,
+        cluster: &Cluster,
+        peer: NodeId,
+        reason: &str,
+        faults: &mut Faults,
+    ) -> Result<(), ClusterRenderError> {
+        if faults.on_lost(cluster, peer, reason)? {
+            self.requests.retain(|r, _| r.node != peer);
+            let actions = self.scheduler.node_lost(peer);
+            self.perform(actions, None, faults);
+        }
+        Ok(())
+    }
+
+    fn on_frame(
+        &mut self,
+        frame: Frame,
+        via: Via,
+        faults: &mut Faults,
+    ) -> Result<(), ClusterRenderError> {
+        let Ok(msg) = frame.message() else {
+            return Ok(());
+        };
+        let sender = frame.header.sender;
+        // A lost node's late words change nothing (its pixels still count).
+        if !self.f.is_alive(sender) && !matches!(msg, Message::Pixels { .. }) {
+            return Ok(());
+        }
+        match msg {
+            Message::SubscreenRequest { finished } => {
+                let request = Request {
+                    node: sender,
+                    tag: frame.header.tag,
+                };
+                // A repeat of a waiting request is answered by the first one's frame.
+                self.requests.entry(request).or_insert(frame);
+                let actions = self.scheduler.request(request, finished, Instant::now());
+                self.perform(actions, None, faults);
+                if !self.scheduler.is_waiting(request) {
+                    self.requests.remove(&request);
                 }
             }
-            Some(Delivery::Lost { peer, reason, .. }) => {
-                if faults.on_lost(cluster, peer, &reason)? {
-                    work.parked.retain(|p| p.header.sender != peer);
-                    let mut reassigned = 0;
-                    for id in 0..subs.len() {
-                        if subs[id].node == Some(peer) && fb.rows_missing(subs[id].rect) > 0 {
-                            reassigned += 1;
-                            requeue_missing(&mut subs, id, &fb, &mut work.queue);
-                        }
-                    }
-                    if let Some(l) = faults.lost.iter_mut().find(|l| l.node == peer) {
-                        l.subscreens_reassigned = reassigned;
-                    }
-                }
-                work.hand_out(&f, &mut subs);
+            Message::Returned {
+                subscreen,
+                from_row,
+            } => {
+                let actions = self.scheduler.returned(sender, subscreen, from_row);
+                self.perform(actions, None, faults);
+            }
+            Message::Pixels {
+                subscreen,
+                x,
+                y,
+                width,
+            } if matches!(via, Via::Direct(_)) && frame.data.len() == width as usize * 3 => {
+                let actions = self.scheduler.pixels(subscreen, x, y, width);
+                let run = Run {
+                    x,
+                    y,
+                    data: &frame.data,
+                };
+                self.perform(actions, Some(run), faults);
+            }
+            Message::Failed { node, message } => {
+                return Err(ClusterRenderError::NodeFailed { node, message });
             }
             _ => {}
         }
-        if fb.missing != last_missing {
-            last_missing = fb.missing;
-            last_progress = Instant::now();
-        } else if last_progress.elapsed() > STALL_REPORT {
-            last_progress = Instant::now();
-            let busy: Vec<String> = subs
-                .iter()
-                .enumerate()
-                .filter(|(_, s)| fb.rows_missing(s.rect) > 0)
-                .map(|(i, s)| match (s.node, s.finished_at) {
-                    (Some(n), None) => format!("{i}@{n}"),
-                    (Some(n), Some(_)) => format!("{i}@{n}(finished)"),
-                    (None, _) => format!("{i}(queued)"),
-                })
-                .collect();
-            let waiting: Vec<NodeId> = work.parked.iter().map(|p| p.header.sender).collect();
-            tracing::info!(
-                "no pixels for {:?}: {} missing; subscreens not done: {}; nodes waiting for work: {waiting:?}",
-                STALL_REPORT,
-                fb.missing,
-                busy.join(" ")
-            );
-        }
-        // Once a node was lost, rows may have been lost with it on their way to the frame
-        // buffer (or a give-back with its answer): finished subscreens still missing rows
-        // are rendered again.
-        if !faults.lost.is_empty() && last_sweep.elapsed() > Duration::from_millis(250) {
-            last_sweep = Instant::now();
-            for id in 0..subs.len() {
-                let s = &subs[id];
-                if s.finished_at.is_some_and(|t| t.elapsed() > LOST_ROWS_GRACE)
-                    && fb.rows_missing(s.rect) > 0
-                {
-                    tracing::info!("rows of subscreen {id} never arrived; rendering them again");
-                    requeue_missing(&mut subs, id, &fb, &mut work.queue);
+        Ok(())
+    }
+
+    /// Carries out the scheduler's decisions; `run` is the run of pixels that led to them.
+    fn perform(&mut self, actions: Vec<Action>, run: Option<Run<'_>>, faults: &mut Faults) {
+        let mut stored = false;
+        for action in actions {
+            match action {
+                Action::Answer { request, answer } => self.answer(request, answer),
+                Action::GiveBack { node, subscreen } => {
+                    let _ = self
+                        .f
+                        .send(node, &Message::GiveBack { subscreen }, Box::new([]), 0);
                 }
+                Action::Store { x, y, width } => {
+                    if let Some(run) = &run {
+                        self.store(run, x, y, width);
+                        stored = true;
+                    }
+                }
+                Action::FirstPixels { node, subscreen } => event_first_pixels(node, subscreen),
+                Action::Reassigned { node, subscreens } => {
+                    if let Some(l) = faults.lost.iter_mut().find(|l| l.node == node) {
+                        l.subscreens_reassigned = subscreens;
+                    }
+                }
+                Action::RowsNeverArrived { subscreen } => {
+                    tracing::info!(
+                        "rows of subscreen {subscreen} never arrived; rendering them again"
+                    );
+                }
+                Action::Stalled(report) => tracing::info!("{report}"),
+                // The loop in `run` sees it.
+                Action::Complete => {}
             }
-            work.hand_out(&f, &mut subs);
+        }
+        if stored {
+            let total = self.image.pixels.len() as u64;
+            self.progress
+                .update(total - self.scheduler.missing(), total);
         }
     }
-    progress.finish();
-    let render_s = t1.elapsed().as_secs_f64();
-    // Everyone still asking gets told there is nothing more.
-    for req in work.parked.drain(..) {
-        let _ = f.reply(
-            &req,
-            &Message::NoMoreWork,
-            Box::new([]),
-            fabric::Route::Mesh,
-            0,
-        );
+
+    fn answer(&mut self, request: Request, answer: Answer) {
+        let Some(frame) = self.requests.remove(&request) else {
+            return;
+        };
+        let message = match answer {
+            Answer::Subscreen { id, rect } => Message::Subscreen { id, rect },
+            Answer::NoMoreWork => Message::NoMoreWork,
+        };
+        let _ = self
+            .f
+            .reply(&frame, &message, Box::new([]), fabric::Route::Mesh, 0);
     }
-    drain_requests(cluster, &f).await;
 
-    let t2 = Instant::now();
-    scene_io::write_image(&rc.output, &fb.image).map_err(RenderError::Output)?;
-    let write_s = t2.elapsed().as_secs_f64();
+    /// Copies `width` pixels at (x, y) from the run that brought them into the image.
+    fn store(&mut self, run: &Run<'_>, x: u32, y: u32, width: u32) {
+        let pixels: &[[f32; 3]] = bytemuck::cast_slice(run.data);
+        let from = (x - run.x) as usize;
+        let at = (y * self.image.width + x) as usize;
+        debug_assert_eq!(y, run.y);
+        self.image.pixels[at..at + width as usize]
+            .copy_from_slice(&pixels[from..from + width as usize]);
+    }
 
-    // Every live node's statistics.
-    let mut alive: Vec<NodeId> = (1..topo.len() as NodeId)
+    /// The frame is complete: everyone still asking is told there is nothing more.
+    fn finish(&mut self, faults: &mut Faults) {
+        let actions = self.scheduler.finish();
+        self.perform(actions, None, faults);
+    }
+}
+
+/// Answers a request for work after the frame with "no more work".
+fn refuse_request(f: &fabric::Fabric, request: &Frame) {
+    let _ = f.reply(
+        request,
+        &Message::NoMoreWork,
+        Box::new([]),
+        fabric::Route::Mesh,
+        0,
+    );
+}
+
+/// Every live node's statistics, as many as arrive within 10 s.
+async fn collect_node_stats(cluster: &mut Cluster) -> Vec<NodeStats> {
+    let f = cluster.formed.fabric.clone();
+    let mut alive: Vec<NodeId> = (1..f.topology().len() as NodeId)
         .filter(|&n| f.is_alive(n))
         .collect();
     for &n in &alive {
@@ -673,15 +770,7 @@ async fn drive(
                 Ok(Message::NodeStats(s)) => {
                     nodes.insert(s.node, *s);
                 }
-                Ok(Message::SubscreenRequest { .. }) => {
-                    let _ = f.reply(
-                        &frame,
-                        &Message::NoMoreWork,
-                        Box::new([]),
-                        fabric::Route::Mesh,
-                        0,
-                    );
-                }
+                Ok(Message::SubscreenRequest { .. }) => refuse_request(&f, &frame),
                 _ => {}
             },
             // A node lost now cannot answer; the image is already written.
@@ -697,8 +786,13 @@ async fn drive(
     }
     let mut nodes: Vec<NodeStats> = nodes.into_values().collect();
     nodes.sort_by_key(|n| n.node);
+    nodes
+}
+
+/// The sums of every node's figures.
+fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
     let mut totals = NodeStats::default();
-    for n in &nodes {
+    for n in nodes {
         totals.subscreens += n.subscreens;
         totals.rows += n.rows;
         totals.pixels += n.pixels;
@@ -724,7 +818,31 @@ async fn drive(
         totals.idle_s += n.idle_s;
         totals.peak_rss_bytes += n.peak_rss_bytes;
     }
+    totals
+}
+
+/// What a finished render leaves for its statistics.
+struct Finished<'a> {
+    scene: &'a Scene,
+    plan: &'a JobPlan,
+    subscreens: u32,
+    subscreens_split: u32,
+    nodes: Vec<NodeStats>,
+    lost_nodes: Vec<LostNode>,
+    seconds: crate::stats::Seconds,
+}
+
+fn cluster_stats(
+    config: &ClusterRenderConfig,
+    cluster: &Cluster,
+    done: Finished<'_>,
+) -> ClusterStats {
+    let rc = &config.render;
+    let settings = &done.plan.job.settings;
+    let topo = cluster.formed.fabric.topology();
+    let totals = sum_node_stats(&done.nodes);
     let host_rss = fabric::peak_rss_bytes();
+    let render_s = done.seconds.render;
     let mut render = RenderStats {
         scene: rc.scene.to_string(),
         output: rc.output.display().to_string(),
@@ -734,17 +852,14 @@ async fn drive(
         spp: settings.spp,
         seed: settings.seed,
         integrator: settings.integrator.to_string(),
-        threads: config.render_threads as usize * render_nodes.len(),
-        triangles: scene.triangle_count(),
-        chunks: scene.chunks.len(),
-        shape_bytes: scene.shape_bytes,
-        texture_tiles: scene.tile_count,
+        threads: config.render_threads as usize * done.plan.render_nodes.len(),
+        triangles: done.scene.triangle_count(),
+        chunks: done.scene.chunks.len(),
+        shape_bytes: done.scene.shape_bytes,
+        texture_tiles: done.scene.tile_count,
+        seconds: done.seconds,
         ..Default::default()
     };
-    render.seconds.load = load_s;
-    render.seconds.render = render_s;
-    render.seconds.write = write_s;
-    render.seconds.total = t0.elapsed().as_secs_f64();
     render.samples = totals.samples;
     render.bad_samples = totals.bad_samples;
     render.peak_rss_bytes = host_rss;
@@ -764,30 +879,25 @@ async fn drive(
         render.samples_per_second = totals.samples as f64 / render_s;
         render.rays_per_second = totals.rays as f64 / render_s;
     }
-    let stats = ClusterStats {
+    ClusterStats {
         render,
         topology: topo.name.clone(),
         processes: topo.len(),
         transfer: format!("{:?}", config.transfer),
         cache_percent: config.cache_percent,
-        cache_bytes,
-        subscreens: original,
-        subscreens_split: split,
+        cache_bytes: done.plan.job.cache_bytes,
+        subscreens: done.subscreens,
+        subscreens_split: done.subscreens_split,
         adaptive: config.adaptive,
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,
         host_peak_rss_bytes: host_rss,
         totals,
-        nodes,
+        nodes: done.nodes,
         members: cluster.formed.members.clone(),
-        lost_nodes: faults.lost,
-    };
-    if let Some(p) = &rc.stats {
-        let json = serde_json::to_vec_pretty(&stats).unwrap_or_default();
-        scene_io::image_io::write_atomic(p, &json).map_err(RenderError::Output)?;
+        lost_nodes: done.lost_nodes,
     }
-    Ok(stats)
 }
 
 /// The log target of machine-readable events (`MAGG_EVENT ...` lines at debug level), which
@@ -799,83 +909,6 @@ fn event_first_pixels(node: NodeId, subscreen: u32) {
     tracing::debug!(target: EVENT_TARGET, "MAGG_EVENT pixels node={node} subscreen={subscreen}");
 }
 
-/// Subscreens waiting for a node, and nodes waiting for a subscreen.
-/// How long the render may go without a pixel before the host says what it waits for.
-const STALL_REPORT: Duration = Duration::from_secs(10);
-
-struct Work {
-    queue: VecDeque<u32>,
-    /// Requests for work not answered yet.
-    parked: VecDeque<Frame>,
-    /// Answers given, by (node, request tag), to repeat if the request comes again.
-    answered: HashMap<(NodeId, u32), Message>,
-}
-
-impl Work {
-    /// Pairs waiting requests with waiting subscreens.
-    fn hand_out(&mut self, f: &fabric::Fabric, subs: &mut [Sub]) {
-        while !self.queue.is_empty() {
-            let Some(request) = self.parked.pop_front() else {
-                break;
-            };
-            let id = self.queue.pop_front().expect("not empty");
-            let s = &mut subs[id as usize];
-            s.node = Some(request.header.sender);
-            s.pixels_seen = false;
-            s.finished_at = None;
-            s.giving_back = false;
-            let answer = Message::Subscreen { id, rect: s.rect };
-            let _ = f.reply(&request, &answer, Box::new([]), fabric::Route::Mesh, 0);
-            self.answered
-                .insert((request.header.sender, request.header.tag), answer);
-        }
-    }
-}
-
-/// Puts the rows of subscreen `id` that still miss pixels back in the queue, first in line:
-/// the first run of them under the same id, any further runs as new subscreens.
-fn requeue_missing(subs: &mut Vec<Sub>, id: usize, fb: &FrameBuffer, queue: &mut VecDeque<u32>) {
-    let runs = fb.missing_runs(subs[id].rect);
-    let Some((first, rest)) = runs.split_first() else {
-        return;
-    };
-    subs[id] = Sub::new(*first);
-    queue.retain(|&q| q as usize != id);
-    queue.push_front(id as u32);
-    for r in rest {
-        subs.push(Sub::new(*r));
-        queue.push_front(subs.len() as u32 - 1);
-    }
-}
-
-/// Asks the node with the most rows still to render to give half of them back.
-fn ask_give_back(f: &fabric::Fabric, subs: &mut [Sub], fb: &FrameBuffer) {
-    if subs.iter().any(|s| s.giving_back) {
-        return;
-    }
-    let best = subs
-        .iter()
-        .enumerate()
-        .filter(|(_, s)| s.node.is_some())
-        .map(|(i, s)| (fb.rows_missing(s.rect), i))
-        .filter(|&(rows, _)| rows >= 2)
-        .max();
-    if let Some((_, i)) = best {
-        let s = &mut subs[i];
-        s.giving_back = true;
-        if let Some(node) = s.node {
-            let _ = f.send(
-                node,
-                &Message::GiveBack {
-                    subscreen: i as u32,
-                },
-                Box::new([]),
-                0,
-            );
-        }
-    }
-}
-
 /// Answers the last requests for work, which arrive as render nodes finish.
 async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric) {
     let until = Instant::now() + Duration::from_millis(300);
@@ -884,13 +917,7 @@ async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric) {
             tokio::time::timeout(Duration::from_millis(50), cluster.formed.inbox.recv()).await
             && let Ok(Message::SubscreenRequest { .. }) = frame.message()
         {
-            let _ = f.reply(
-                &frame,
-                &Message::NoMoreWork,
-                Box::new([]),
-                fabric::Route::Mesh,
-                0,
-            );
+            refuse_request(f, &frame);
         }
     }
 }

@@ -8,6 +8,7 @@ pub mod distributed;
 pub mod inprocess;
 pub mod progress;
 pub mod scene_source;
+pub mod schedule;
 pub mod spawn;
 pub mod stats;
 
