@@ -21,7 +21,10 @@ fn lines_finished(partial: &Path, height: usize) -> usize {
         return 0;
     };
     let len = u32::from_le_bytes(b[8..12].try_into().unwrap()) as usize;
-    b[12 + len..12 + len + height].iter().filter(|&&x| x == 1).count()
+    b[12 + len..12 + len + height]
+        .iter()
+        .filter(|&&x| x == 1)
+        .count()
 }
 
 /// Starts a render that writes its checkpoint after every tile, waits until the checkpoint
@@ -140,4 +143,23 @@ fn a_checkpoint_of_other_settings_is_refused_with_the_reason() {
         dir.join("image.pfm.partial").exists(),
         "a refused resume lost the checkpoint"
     );
+}
+
+#[test]
+fn a_killed_cluster_render_resumes_in_one_process_to_the_same_bytes() {
+    let dir = scratch("resume-cluster");
+    let out = dir.join("image.pfm");
+    killed_mid_render(&out, &["--spawn", "tiny"]);
+    finish(&out, &["--in-process"]);
+    same_bytes(&out, &uninterrupted(&dir));
+}
+
+#[test]
+fn a_killed_render_resumes_on_a_cluster_of_another_shape_to_the_same_bytes() {
+    let dir = scratch("resume-reshaped");
+    let out = dir.join("image.pfm");
+    killed_mid_render(&out, &["--spawn", "tiny"]);
+    finish(&out, &["--spawn", "grid:2x1x2"]);
+    assert!(!dir.join("image.pfm.partial").exists());
+    same_bytes(&out, &uninterrupted(&dir));
 }

@@ -183,31 +183,10 @@ impl Checkpoint {
         self.rows_done.iter().filter(|&&d| d).count()
     }
 
-    /// The file's bytes, the digest last.
-    fn encode(&self) -> Vec<u8> {
-        let header = serde_json::to_vec(&Header {
-            format: FORMAT,
-            key: self.key.clone(),
-            width: self.image.width,
-            height: self.image.height,
-        })
-        .unwrap_or_default();
-        let w = self.image.width as usize;
-        let mut out = Vec::with_capacity(64 + header.len() + self.rows_done.len());
-        out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-        out.extend_from_slice(&header);
-        out.extend(self.rows_done.iter().map(|&d| u8::from(d)));
-        for (y, _) in self.rows_done.iter().enumerate().filter(|(_, d)| **d) {
-            for p in &self.image.pixels[y * w..(y + 1) * w] {
-                for c in p {
-                    out.extend_from_slice(&c.to_le_bytes());
-                }
-            }
-        }
-        let digest = Sha256::digest(&out);
-        out.extend_from_slice(&digest);
-        out
+    /// Replaces the file at `path` with this checkpoint, atomically: a reader (or a crash)
+    /// sees the old file or the new one, never a mix.
+    pub fn write(&self, path: &Path) -> Result<(), CheckpointError> {
+        write(path, &self.key, &self.image, &self.rows_done)
     }
 
     /// Reads and checks a checkpoint file's bytes (its key is not compared here).
@@ -278,30 +257,6 @@ impl Checkpoint {
         })
     }
 
-    /// Replaces the file at `path` with this checkpoint, atomically: a reader (or a crash)
-    /// sees the old file or the new one, never a mix.
-    pub fn write(&self, path: &Path) -> Result<(), CheckpointError> {
-        let io = |source| CheckpointError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let mut tmp = path.as_os_str().to_os_string();
-        tmp.push(".tmp");
-        let tmp = PathBuf::from(tmp);
-        let mut f = std::fs::File::create(&tmp).map_err(io)?;
-        f.write_all(&self.encode()).map_err(io)?;
-        f.sync_all().map_err(io)?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(io)?;
-        // The rename itself survives a power cut once the folder is synced.
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
-            && let Ok(d) = std::fs::File::open(dir)
-        {
-            let _ = d.sync_all();
-        }
-        Ok(())
-    }
-
     /// Reads the checkpoint at `path` for a render with `key`; refuses one made from
     /// anything else, saying what differs.
     pub fn resume(path: &Path, key: &CheckpointKey) -> Result<Checkpoint, CheckpointError> {
@@ -331,6 +286,63 @@ impl Checkpoint {
         }
         Ok(c)
     }
+}
+
+/// The file's bytes, the digest last.
+fn encode(key: &CheckpointKey, image: &Image, rows_done: &[bool]) -> Vec<u8> {
+    let header = serde_json::to_vec(&Header {
+        format: FORMAT,
+        key: key.clone(),
+        width: image.width,
+        height: image.height,
+    })
+    .unwrap_or_default();
+    let w = image.width as usize;
+    let mut out = Vec::with_capacity(64 + header.len() + rows_done.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    out.extend_from_slice(&header);
+    out.extend(rows_done.iter().map(|&d| u8::from(d)));
+    for (y, _) in rows_done.iter().enumerate().filter(|(_, d)| **d) {
+        for p in &image.pixels[y * w..(y + 1) * w] {
+            for c in p {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    let digest = Sha256::digest(&out);
+    out.extend_from_slice(&digest);
+    out
+}
+
+/// Replaces the file at `path` with the checkpoint of `image`, whose lines flagged in
+/// `rows_done` are finished, atomically: a reader (or a crash) sees the old file or the new
+/// one, never a mix.
+pub fn write(
+    path: &Path,
+    key: &CheckpointKey,
+    image: &Image,
+    rows_done: &[bool],
+) -> Result<(), CheckpointError> {
+    let io = |source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut tmp = path.as_os_str().to_os_string();
+    tmp.push(".tmp");
+    let tmp = PathBuf::from(tmp);
+    let mut f = std::fs::File::create(&tmp).map_err(io)?;
+    f.write_all(&encode(key, image, rows_done)).map_err(io)?;
+    f.sync_all().map_err(io)?;
+    drop(f);
+    std::fs::rename(&tmp, path).map_err(io)?;
+    // The rename itself survives a power cut once the folder is synced.
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
+        && let Ok(d) = std::fs::File::open(dir)
+    {
+        let _ = d.sync_all();
+    }
+    Ok(())
 }
 
 /// The checkpoint a render starts from: the one at `path` when resuming (or an empty one,

@@ -19,10 +19,11 @@ use protocol::{
     Frame, JobSpec, Message, NodeId, NodeStats, Rect, Role, Transfer, TransferMode, bytes_to_words,
     decode_value, encode_value, words_to_bytes,
 };
-use renderer::{Image, Scene};
+use renderer::Scene;
 use serde::Serialize;
 
 use crate::{
+    checkpoint::{self, Checkpoint, CheckpointKey},
     cluster::{Cluster, ClusterConfig, start},
     inprocess::{RenderConfig, RenderError, check_settings},
     progress::Progress,
@@ -311,21 +312,43 @@ async fn drive(
         started: t0,
         lost: Vec::new(),
     };
+    let scene_sha256 = checkpoint::scene_digest(&desc);
     upload_scene(&f, desc, rc.prepare.chunk_triangles as u32)?;
     let scene = await_header(cluster, cancel, &mut faults).await?;
     let load_s = t0.elapsed().as_secs_f64();
     let plan = plan_job(config, &scene, f.topology().render_nodes())?;
+    let (width, height) = (plan.job.settings.width, plan.job.settings.height);
+    let key = CheckpointKey::new(
+        scene_sha256,
+        &rc.prepare,
+        &plan.job.settings,
+        &plan.job.camera,
+    );
+    let kept = checkpoint::start(
+        &checkpoint::path_for(&rc.output),
+        rc.resume,
+        key,
+        width,
+        height,
+    )
+    .map_err(RenderError::from)?;
     send_job(&f, &plan.job)?;
 
     let t1 = Instant::now();
-    let mut frame = Rendering::new(config, &plan, &faults, f.clone(), t1);
-    frame.run(cluster, cancel, &mut faults).await?;
+    let mut frame = Rendering::new(config, &plan, &faults, f.clone(), kept, t1);
+    if let Err(e) = frame.run(cluster, cancel, &mut faults).await {
+        // What is finished outlives the render: `--resume` continues from it.
+        frame.save();
+        return Err(e);
+    }
     let render_s = t1.elapsed().as_secs_f64();
     frame.finish(&mut faults);
     drain_requests(cluster, &f).await;
 
     let t2 = Instant::now();
-    scene_io::write_image(&rc.output, &frame.image).map_err(RenderError::Output)?;
+    scene_io::write_image(&rc.output, &frame.kept.image).map_err(RenderError::Output)?;
+    // The image is whole: its checkpoint, if one was written, has served.
+    let _ = std::fs::remove_file(&frame.checkpoint_path);
     let write_s = t2.elapsed().as_secs_f64();
 
     let nodes = collect_node_stats(cluster).await;
@@ -535,7 +558,15 @@ struct Run<'a> {
 /// and the image they fill.
 struct Rendering {
     scheduler: Scheduler,
-    image: Image,
+    /// The image, and which of its lines are finished: what `OUT.partial` keeps.
+    kept: Checkpoint,
+    /// Per line, pixels not yet in.
+    pending: Vec<u32>,
+    checkpoint_path: std::path::PathBuf,
+    checkpoint_interval: Duration,
+    last_checkpoint: Instant,
+    /// Whether writing the checkpoint failed already (said once, the render goes on).
+    checkpoint_failed: bool,
     /// The frames of requests for work not answered yet, to answer them by.
     requests: HashMap<Request, Frame>,
     progress: Progress,
@@ -548,10 +579,20 @@ impl Rendering {
         plan: &JobPlan,
         faults: &Faults,
         f: fabric::Fabric,
+        kept: Checkpoint,
         now: Instant,
     ) -> Rendering {
         let (width, height) = (plan.job.settings.width, plan.job.settings.height);
-        let mut scheduler = Scheduler::new(
+        let finished: Vec<Rect> = (0..height)
+            .filter(|&y| kept.rows_done[y as usize])
+            .map(|y| Rect {
+                x: 0,
+                y,
+                width,
+                height: 1,
+            })
+            .collect();
+        let mut scheduler = Scheduler::resume(
             schedule::Plan {
                 width,
                 height,
@@ -559,6 +600,7 @@ impl Rendering {
                 render_nodes: plan.render_nodes.clone(),
                 adaptive: config.adaptive,
             },
+            &finished,
             now,
         );
         // Render nodes lost while the scene was placed held no work, yet their loss still
@@ -569,7 +611,12 @@ impl Rendering {
         let total = width as u64 * height as u64;
         Rendering {
             scheduler,
-            image: Image::new(width, height),
+            pending: kept.pending(),
+            kept,
+            checkpoint_path: checkpoint::path_for(&config.render.output),
+            checkpoint_interval: config.render.checkpoint_interval,
+            last_checkpoint: now,
+            checkpoint_failed: false,
             requests: HashMap::new(),
             progress: Progress::new(total, config.render.progress),
             f,
@@ -594,9 +641,24 @@ impl Rendering {
             }
             let actions = self.scheduler.tick(Instant::now());
             self.perform(actions, None, faults);
+            if self.last_checkpoint.elapsed() >= self.checkpoint_interval {
+                self.save();
+            }
         }
         self.progress.finish();
         Ok(())
+    }
+
+    /// Replaces the checkpoint with the lines finished so far.
+    fn save(&mut self) {
+        self.last_checkpoint = Instant::now();
+        let k = &self.kept;
+        if let Err(e) = checkpoint::write(&self.checkpoint_path, &k.key, &k.image, &k.rows_done)
+            && !self.checkpoint_failed
+        {
+            self.checkpoint_failed = true;
+            tracing::warn!("cannot keep a checkpoint: {e}");
+        }
     }
 
     /// The connection to `peer` ended: a render node's work goes to others.
@@ -706,7 +768,7 @@ impl Rendering {
             }
         }
         if stored {
-            let total = self.image.pixels.len() as u64;
+            let total = self.kept.image.pixels.len() as u64;
             self.progress
                 .update(total - self.scheduler.missing(), total);
         }
@@ -729,10 +791,16 @@ impl Rendering {
     fn store(&mut self, run: &Run<'_>, x: u32, y: u32, width: u32) {
         let pixels: &[[f32; 3]] = bytemuck::cast_slice(run.data);
         let from = (x - run.x) as usize;
-        let at = (y * self.image.width + x) as usize;
+        let at = (y * self.kept.image.width + x) as usize;
         debug_assert_eq!(y, run.y);
-        self.image.pixels[at..at + width as usize]
+        self.kept.image.pixels[at..at + width as usize]
             .copy_from_slice(&pixels[from..from + width as usize]);
+        // The scheduler stores each pixel once, so a line is finished when its count is out.
+        let left = &mut self.pending[y as usize];
+        *left = left.saturating_sub(width);
+        if *left == 0 {
+            self.kept.rows_done[y as usize] = true;
+        }
     }
 
     /// The frame is complete: everyone still asking is told there is nothing more.

@@ -81,6 +81,11 @@ pub fn check_settings(config: &RenderConfig) -> Result<(), RenderError> {
         return bad("--noise-threshold must be a number of at least 0".into());
     }
     check_output(&config.output)?;
+    // Before minutes of loading and starting a cluster, not after.
+    let partial = checkpoint::path_for(&config.output);
+    if !config.resume && partial.exists() {
+        return Err(CheckpointError::Exists { path: partial }.into());
+    }
     if let Some(p) = &config.stats {
         check_writable_dir(p)?;
     }

@@ -366,6 +366,17 @@ struct RenderArgs {
     quiet: bool,
 }
 
+/// After a render that ended early: where its finished lines are, if any were kept.
+fn resume_hint(output: &std::path::Path) {
+    let partial = host::checkpoint::path_for(output);
+    if partial.exists() {
+        eprintln!(
+            "the finished scan lines are kept in {}; the same command with --resume continues the render",
+            partial.display()
+        );
+    }
+}
+
 /// This executable: spawned nodes and the lab's whole-render runs start it again.
 fn own_program() -> Result<PathBuf> {
     std::env::current_exe()
@@ -516,9 +527,16 @@ fn render(args: RenderArgs) -> Result<()> {
         let stats = match rt.block_on(host::distributed::render_on_cluster(&cfg, &cancel)) {
             Err(host::distributed::ClusterRenderError::Interrupted) => {
                 eprintln!("interrupted; the cluster was stopped and no image was written");
+                resume_hint(&args.output);
                 std::process::exit(130);
             }
-            r => r?,
+            Err(e) => {
+                let e = anyhow::Error::from(e);
+                eprintln!("error: {}", magg::report(&e));
+                resume_hint(&args.output);
+                std::process::exit(1);
+            }
+            Ok(stats) => stats,
         };
         print_cluster_summary(&stats);
         return Ok(());
