@@ -5,6 +5,7 @@
 //! * [`model`]: the paper's serial-link, DMA and G-bus timings, applied exactly once, here.
 //! * [`clock`]: the shared monotonic clock and a timer precise well below a millisecond.
 //! * [`node`]: the runtime every process runs: links, forwarding, delivery.
+//! * [`registry`]: the decisions of forming a cluster (slots, refusals, completion, timeout), with no I/O.
 //! * [`cluster`]: forming a cluster: registration with the host, addresses, links up.
 
 pub mod clock;
@@ -12,6 +13,7 @@ pub mod cluster;
 pub mod diag;
 pub mod model;
 pub mod node;
+pub mod registry;
 pub mod routing;
 pub mod topology;
 
