@@ -6,8 +6,15 @@
 //! from the topology and, once every slot is filled, sends everyone the address table. Nodes
 //! then connect their mesh links and direct connections, report that their links are up, and
 //! the host says go.
+//!
+//! What is decided along the way lives in [`crate::registry`]; this module moves messages
+//! between it and the sockets.
 
-use std::{collections::HashMap, sync::Arc, time::Duration};
+use std::{
+    collections::HashMap,
+    sync::Arc,
+    time::{Duration, Instant},
+};
 
 use protocol::{
     ConnectionKind, Frame, FrameReader, FrameWriter, Identity, Message, NodeId, Role, Secret,
@@ -21,40 +28,145 @@ use tokio::{
 use crate::{
     clock::boot_id,
     node::{Delivery, Fabric, Via, dials, expected_direct},
-    topology::Topology,
+    registry::{Registration, Registry, advertise_address, peer_table, read_assignment},
+    topology::{Topology, TopologyError},
 };
 
 /// The cluster id nodes use unless told otherwise.
 pub const DEFAULT_CLUSTER_ID: &str = "magg";
 
+/// Why a cluster did not form, on the host's side or a node's.
 #[derive(Debug, thiserror::Error)]
 pub enum ClusterError {
-    #[error("{0}")]
-    Io(String),
+    #[error("cannot listen on {address}: {source}")]
+    Listen {
+        address: String,
+        source: std::io::Error,
+    },
+    #[error("cannot reach the host at {host}: {source}")]
+    HostUnreachable {
+        host: String,
+        source: std::io::Error,
+    },
+    #[error("cannot tell which address {what} has: {source}")]
+    LocalAddress {
+        what: &'static str,
+        source: std::io::Error,
+    },
+    #[error("registering with the host: {source}")]
+    Register { source: std::io::Error },
+    #[error("waiting for the host's answer to registration: {source}")]
+    RegisterAnswer { source: protocol::ReadError },
+    #[error("the host's answer to registration is unreadable: {0}")]
+    UndecodableAnswer(#[source] protocol::DecodeError),
+    #[error("unexpected answer to registration: {0:?}")]
+    UnexpectedAnswer(Box<Message>),
+    #[error("the host sent a topology this node cannot use: {0}")]
+    HostTopology(#[source] TopologyError),
+    #[error("the host gave slot {node}, which is not a {role}")]
+    WrongSlot { node: NodeId, role: Role },
+    #[error("the address table has no node {node}")]
+    MissingAddress { node: NodeId },
     #[error(transparent)]
     Dial(#[from] crate::node::DialError),
+    #[error("a task dialing a peer ended without an answer: {0}")]
+    DialTask(#[from] tokio::task::JoinError),
     #[error("{0}")]
     Handshake(#[from] handshake::HandshakeError),
     #[error("the host refused this node: {0}")]
     Refused(String),
-    #[error("timed out after {seconds} s: {missing}")]
-    Timeout { seconds: u64, missing: String },
+    #[error("timed out after {seconds} s: {waiting_for}")]
+    Timeout { seconds: u64, waiting_for: Waiting },
     #[error("lost the connection to the host")]
     HostLost,
-    #[error("{0}")]
-    Protocol(String),
+    #[error("the host's fabric stopped while the cluster was forming")]
+    FabricStopped,
+    #[error("node {node} failed while joining: {message}")]
+    NodeFailed { node: NodeId, message: String },
+    #[error("node {node} left while the cluster was forming")]
+    NodeLeft { node: NodeId },
 }
 
-/// A registered member of the cluster.
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct Member {
-    pub node: NodeId,
-    pub role: Role,
-    pub advertise: String,
-    pub pid: u32,
-    pub hostname: String,
-    pub boot_id: String,
+/// What formation was still waiting for when it timed out.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Waiting {
+    /// Nodes to register (host side).
+    Joins {
+        forks_joined: usize,
+        forks: usize,
+        renders_joined: usize,
+        renders: usize,
+    },
+    /// Registered nodes to report their links up (host side).
+    LinksUp {
+        up: usize,
+        slots: usize,
+        waiting: Vec<NodeId>,
+    },
+    /// The fork nodes' direct connections and the mesh link to the host (host side).
+    HostLinks {
+        direct: usize,
+        want_direct: usize,
+        mesh: usize,
+        want_mesh: usize,
+    },
+    /// The host's answer to registration (node side).
+    HostAnswer,
+    /// The address table (node side).
+    AddressTable,
+    /// Links that neighbours open to this node (node side).
+    NeighbourLinks {
+        mesh: usize,
+        want_mesh: usize,
+        direct: usize,
+        want_direct: usize,
+    },
+    /// The host's go (node side).
+    Go,
 }
+
+impl std::fmt::Display for Waiting {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Waiting::Joins {
+                forks_joined,
+                forks,
+                renders_joined,
+                renders,
+            } => write!(
+                f,
+                "{forks_joined} of {forks} fork nodes and {renders_joined} of {renders} render nodes joined"
+            ),
+            Waiting::LinksUp { up, slots, waiting } => write!(
+                f,
+                "{up} of {slots} nodes connected their links (waiting for {waiting:?})"
+            ),
+            Waiting::HostLinks {
+                direct,
+                want_direct,
+                mesh,
+                want_mesh,
+            } => write!(
+                f,
+                "the fork nodes' connections to the host ({direct} of {want_direct} direct, {mesh} of {want_mesh} mesh)"
+            ),
+            Waiting::HostAnswer => write!(f, "the host's answer"),
+            Waiting::AddressTable => write!(f, "the address table from the host"),
+            Waiting::NeighbourLinks {
+                mesh,
+                want_mesh,
+                direct,
+                want_direct,
+            } => write!(
+                f,
+                "links from neighbours ({mesh} of {want_mesh} mesh, {direct} of {want_direct} direct)"
+            ),
+            Waiting::Go => write!(f, "the host's go"),
+        }
+    }
+}
+
+pub use crate::registry::Member;
 
 /// The host's side of a formed cluster.
 pub struct Formed {
@@ -62,6 +174,10 @@ pub struct Formed {
     pub inbox: mpsc::UnboundedReceiver<Delivery>,
     pub members: Vec<Member>,
 }
+
+/// How long the host waits, once every node reported its links, for the fork nodes'
+/// connections to itself (they are dialled by then; this only covers their handshakes).
+const HOST_LINKS_WAIT: Duration = Duration::from_secs(10);
 
 fn hostname() -> String {
     std::fs::read_to_string("/proc/sys/kernel/hostname")
@@ -101,7 +217,15 @@ pub fn refuse_late_joiner(delivery: Delivery, reason: String) {
     });
 }
 
-/// Host side: waits until the topology is filled and every node's links are up.
+/// How `form` reports joins as they happen.
+struct Announce<'a> {
+    progress: &'a (dyn Fn(usize, usize) + Sync),
+    /// Nodes started by hand are worth a line each; the host's own children are not.
+    each_join: bool,
+}
+
+/// Host side: waits until the topology is filled and every node's links are up. The
+/// [`Registry`] decides; this loop only carries its decisions to and from the sockets.
 pub async fn form(
     listener: TcpListener,
     topology: Topology,
@@ -120,179 +244,50 @@ pub async fn form(
         cluster_id.to_string(),
     );
     fabric.serve(listener);
-    let slots = topology.len() - 1;
-    let mut members: HashMap<NodeId, Member> = HashMap::new();
-    let mut links_up: HashMap<NodeId, bool> = HashMap::new();
-    let (reg_tx, mut reg_rx) = mpsc::unbounded_channel::<(Message, ControlHalves)>();
-    let deadline = tokio::time::Instant::now() + timeout;
-    let my_boot = boot_id();
-    let mut peers_sent = false;
-    let mut host_links_dialed = false;
-
-    loop {
-        if peers_sent && links_up.len() == slots && host_links_dialed {
-            break;
-        }
-        let ev = tokio::select! {
+    let mut registry = Registry::new(topology.clone(), boot_id(), Instant::now(), timeout);
+    let deadline = tokio::time::Instant::from_std(registry.deadline());
+    let (registrations_tx, mut registrations) = mpsc::unbounded_channel();
+    let announce = Announce {
+        progress,
+        each_join: announce_joins,
+    };
+    while !registry.is_formed() {
+        let event = tokio::select! {
             d = inbox.recv() => Event::Delivery(d),
-            r = reg_rx.recv() => Event::Registration(r),
+            r = registrations.recv() => Event::Registration(r),
             _ = tokio::time::sleep_until(deadline) => Event::Timeout,
         };
-        match ev {
+        match event {
             Event::Timeout => {
-                let (f, r) = topology.counts();
-                let joined_f = members.values().filter(|m| m.role == Role::Fork).count();
-                let joined_r = members.values().filter(|m| m.role == Role::Render).count();
-                let missing = if members.len() < slots {
-                    format!(
-                        "{joined_f} of {f} fork nodes and {joined_r} of {r} render nodes joined"
-                    )
-                } else {
-                    let waiting: Vec<NodeId> = members
-                        .keys()
-                        .copied()
-                        .filter(|n| !links_up.contains_key(n))
-                        .collect();
-                    format!(
-                        "{} of {slots} nodes connected their links (waiting for {waiting:?})",
-                        links_up.len()
-                    )
-                };
-                for m in members.keys() {
-                    let _ = fabric.send_control(
-                        *m,
-                        &Message::Shutdown {
-                            reason: "the cluster did not form in time".into(),
-                        },
-                    );
+                if let Err(e) = registry.check_time(Instant::now()) {
+                    let reason = "the cluster did not form in time".to_string();
+                    tell_members(&fabric, &registry, &Message::Shutdown { reason });
+                    return Err(e);
                 }
-                return Err(ClusterError::Timeout {
-                    seconds: timeout.as_secs(),
-                    missing,
-                });
             }
-            Event::Delivery(None) => return Err(ClusterError::Io("fabric stopped".into())),
+            Event::Delivery(None) => return Err(ClusterError::FabricStopped),
             Event::Delivery(Some(Delivery::Incoming {
                 identity,
-                mut reader,
+                reader,
                 writer,
             })) => {
-                if identity.kind != ConnectionKind::Control {
-                    continue;
+                if identity.kind == ConnectionKind::Control {
+                    read_registration((reader, writer), registrations_tx.clone());
                 }
-                let tx = reg_tx.clone();
-                tokio::spawn(async move {
-                    reader.frame_timeout = handshake::HANDSHAKE_TIMEOUT;
-                    let read =
-                        tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, reader.read()).await;
-                    if let Ok(Ok(frame)) = read
-                        && let Ok(msg) = frame.message()
-                    {
-                        let _ = tx.send((msg, (reader, writer)));
-                    }
-                });
             }
             Event::Registration(None) => {}
-            Event::Registration(Some((msg, (reader, mut writer)))) => {
-                let Message::Register {
-                    role,
-                    advertise,
-                    pid,
-                    hostname,
-                    boot_id,
-                } = msg
-                else {
-                    continue;
-                };
-                let free = (1..topology.len() as NodeId)
-                    .find(|&n| topology.role(n) == role && !members.contains_key(&n));
-                let Some(node) = free.filter(|_| !peers_sent) else {
-                    let reason = format!(
-                        "the cluster has no free {role} slot ({} is full)",
-                        topology.name
-                    );
-                    tracing::warn!("refused a {role} at {advertise}: {reason}");
-                    let _ = writer
-                        .write(&Frame::new(
-                            0,
-                            0,
-                            &Message::Refused { reason },
-                            Box::new([]),
-                        ))
-                        .await;
-                    continue;
-                };
-                let assigned = Message::Assigned {
-                    node,
-                    topology: topology.to_toml(),
-                };
-                if writer
-                    .write(&Frame::new(0, node, &assigned, Box::new([])))
-                    .await
-                    .is_err()
-                {
-                    continue;
-                }
-                // Nodes started by hand are worth a line each; the host's own children not.
-                let line = format!(
-                    "{role} {node} joined from {advertise} (pid {pid} on {hostname}); {} of {slots}",
-                    members.len() + 1
-                );
-                if announce_joins {
-                    tracing::info!("{line}");
-                } else {
-                    tracing::debug!("{line}");
-                }
-                fabric.set_same_machine(node, boot_id == my_boot);
-                fabric.attach(node, ConnectionKind::Control, reader, writer);
-                members.insert(
-                    node,
-                    Member {
-                        node,
-                        role,
-                        advertise,
-                        pid,
-                        hostname,
-                        boot_id,
-                    },
-                );
-                progress(members.len(), slots);
-                if members.len() == slots {
-                    let mut addresses: Vec<(NodeId, String, String)> = members
-                        .values()
-                        .map(|m| (m.node, m.advertise.clone(), m.boot_id.clone()))
-                        .collect();
-                    // Nodes reach the host at the address they joined with.
-                    addresses.push((0, String::new(), my_boot.clone()));
-                    addresses.sort();
-                    for m in members.keys() {
-                        let _ = fabric.send_control(
-                            *m,
-                            &Message::Peers {
-                                addresses: addresses.clone(),
-                            },
-                        );
-                    }
-                    peers_sent = true;
-                    // The host's own links.
-                    for (peer, kind) in dials(&topology, 0) {
-                        let addr = members[&peer].advertise.clone();
-                        fabric.dial(peer, &addr, kind).await?;
-                    }
-                    host_links_dialed = true;
+            Event::Registration(Some((message, halves))) => {
+                if let Some(registration) = Registration::from_message(message) {
+                    register(&fabric, &mut registry, registration, halves, &announce).await?;
                 }
             }
             Event::Delivery(Some(Delivery::Frame {
                 frame,
                 via: Via::Control(n),
             })) => match frame.message() {
-                Ok(Message::LinksUp { .. }) => {
-                    links_up.insert(n, true);
-                }
+                Ok(Message::LinksUp { .. }) => registry.links_up(n),
                 Ok(Message::NodeFailed { node, message }) => {
-                    return Err(ClusterError::Protocol(format!(
-                        "node {node} failed while joining: {message}"
-                    )));
+                    return Err(ClusterError::NodeFailed { node, message });
                 }
                 _ => {}
             },
@@ -301,41 +296,33 @@ pub async fn form(
                 kind: ConnectionKind::Control,
                 ..
             })) => {
-                if peers_sent {
-                    return Err(ClusterError::Protocol(format!(
-                        "node {peer} left while the cluster was forming"
-                    )));
-                }
+                registry.lost(peer)?;
                 tracing::warn!(
                     "node {peer} left before the cluster formed; its slot is free again"
                 );
-                members.remove(&peer);
             }
             Event::Delivery(Some(_)) => {}
         }
     }
-    // Wait for the host's own expected direct connections (fork nodes dial the host).
-    let expect = expected_direct(&topology, 0).len();
-    let wait_deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while fabric.direct_links_up() < expect || fabric.mesh_links_up() < topology.neighbors(0).len()
-    {
-        if tokio::time::Instant::now() > wait_deadline {
-            return Err(ClusterError::Timeout {
-                seconds: 10,
-                missing: "the fork nodes' connections to the host".into(),
-            });
-        }
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
-    for m in members.keys() {
-        let _ = fabric.send_control(*m, &Message::Go);
-    }
-    let mut members: Vec<Member> = members.into_values().collect();
-    members.sort_by_key(|m| m.node);
+    let want_direct = expected_direct(&topology, 0).len();
+    let want_mesh = topology.neighbors(0).len();
+    let until = tokio::time::Instant::now() + HOST_LINKS_WAIT;
+    wait_for_links(&fabric, want_mesh, want_direct, until)
+        .await
+        .map_err(|(mesh, direct)| ClusterError::Timeout {
+            seconds: HOST_LINKS_WAIT.as_secs(),
+            waiting_for: Waiting::HostLinks {
+                direct,
+                want_direct,
+                mesh,
+                want_mesh,
+            },
+        })?;
+    tell_members(&fabric, &registry, &Message::Go);
     Ok(Formed {
         fabric,
         inbox,
-        members,
+        members: registry.into_members(),
     })
 }
 
@@ -343,6 +330,109 @@ enum Event {
     Delivery(Option<Delivery>),
     Registration(Option<(Message, ControlHalves)>),
     Timeout,
+}
+
+/// Reads a registering node's first frame in the background, so that a slow or silent
+/// caller holds up no other node's registration.
+fn read_registration(
+    (mut reader, writer): ControlHalves,
+    to: mpsc::UnboundedSender<(Message, ControlHalves)>,
+) {
+    tokio::spawn(async move {
+        reader.frame_timeout = handshake::HANDSHAKE_TIMEOUT;
+        let read = tokio::time::timeout(handshake::HANDSHAKE_TIMEOUT, reader.read()).await;
+        if let Ok(Ok(frame)) = read
+            && let Ok(message) = frame.message()
+        {
+            let _ = to.send((message, (reader, writer)));
+        }
+    });
+}
+
+/// Answers one registration with a slot or with a refusal saying why. The node that fills
+/// the last slot also sends everyone the address table and has the host dial its own links.
+async fn register(
+    fabric: &Fabric,
+    registry: &mut Registry,
+    registration: Registration,
+    (reader, mut writer): ControlHalves,
+    announce: &Announce<'_>,
+) -> Result<(), ClusterError> {
+    let node = match registry.slot_for(&registration) {
+        Ok(node) => node,
+        Err(refusal) => {
+            let Registration {
+                role, advertise, ..
+            } = &registration;
+            tracing::warn!("refused a {role} at {advertise}: {refusal}");
+            let reason = refusal.to_string();
+            let refused = Frame::new(0, 0, &Message::Refused { reason }, Box::new([]));
+            let _ = writer.write(&refused).await;
+            return Ok(());
+        }
+    };
+    let assigned = Message::Assigned {
+        node,
+        topology: fabric.topology().to_toml(),
+    };
+    if writer
+        .write(&Frame::new(0, node, &assigned, Box::new([])))
+        .await
+        .is_err()
+    {
+        // It hung up: its slot stays free.
+        return Ok(());
+    }
+    let line = format!(
+        "{} {node} joined from {} (pid {} on {}); {} of {}",
+        registration.role,
+        registration.advertise,
+        registration.pid,
+        registration.hostname,
+        registry.members().count() + 1,
+        registry.slots()
+    );
+    if announce.each_join {
+        tracing::info!("{line}");
+    } else {
+        tracing::debug!("{line}");
+    }
+    let admitted = registry.admit(node, registration);
+    fabric.set_same_machine(node, admitted.same_machine);
+    fabric.attach(node, ConnectionKind::Control, reader, writer);
+    (announce.progress)(admitted.joined, admitted.slots);
+    if let Some(addresses) = admitted.addresses {
+        tell_members(fabric, registry, &Message::Peers { addresses });
+        for (peer, address, kind) in registry.host_dials() {
+            fabric.dial(peer, &address, kind).await?;
+        }
+    }
+    Ok(())
+}
+
+/// Sends `message` to every member on its control connection.
+fn tell_members(fabric: &Fabric, registry: &Registry, message: &Message) {
+    for member in registry.members() {
+        let _ = fabric.send_control(member.node, message);
+    }
+}
+
+/// Waits until `fabric` has at least `want_mesh` mesh links and `want_direct` direct
+/// connections up, or gives the counts it had at `deadline`.
+async fn wait_for_links(
+    fabric: &Fabric,
+    want_mesh: usize,
+    want_direct: usize,
+    deadline: tokio::time::Instant,
+) -> Result<(), (usize, usize)> {
+    while fabric.mesh_links_up() < want_mesh || fabric.direct_links_up() < want_direct {
+        if tokio::time::Instant::now() > deadline {
+            return Err((fabric.mesh_links_up(), fabric.direct_links_up()));
+        }
+        // Links come up on other tasks; polling this often costs nothing next to formation.
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    Ok(())
 }
 
 #[derive(Clone, Debug)]
@@ -371,45 +461,117 @@ pub struct Joined {
 
 /// Node side: registers with the host, connects links, waits for go.
 pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
-    let io = |what: &str, e: std::io::Error| ClusterError::Io(format!("{what}: {e}"));
     let listener = TcpListener::bind(&cfg.listen)
         .await
-        .map_err(|e| io(&format!("listening on {}", cfg.listen), e))?;
+        .map_err(|source| ClusterError::Listen {
+            address: cfg.listen.clone(),
+            source,
+        })?;
     let port = listener
         .local_addr()
-        .map_err(|e| io("listening", e))?
+        .map_err(|source| ClusterError::LocalAddress {
+            what: "the listening port",
+            source,
+        })?
         .port();
-
     let deadline = tokio::time::Instant::now() + cfg.timeout;
-    let stream = loop {
-        match TcpStream::connect(&cfg.host).await {
-            Ok(s) => break s,
+    let seconds = cfg.timeout.as_secs();
+    let stream = connect_to_host(&cfg.host, deadline).await?;
+    let toward_host = stream
+        .local_addr()
+        .map_err(|source| ClusterError::LocalAddress {
+            what: "the connection to the host",
+            source,
+        })?
+        .ip();
+    let advertise = advertise_address(cfg.advertise.as_deref(), &cfg.listen, port, toward_host);
+    let (node, topology, (reader, writer)) = register_with_host(&cfg, stream, &advertise).await?;
+    tracing::info!("joined as {} {node}; listening at {advertise}", cfg.role);
+    let topology = Arc::new(topology);
+    let (fabric, mut inbox) = Fabric::new(
+        node,
+        cfg.role,
+        topology.clone(),
+        cfg.secret.clone(),
+        cfg.cluster_id.clone(),
+    );
+    fabric.attach(0, ConnectionKind::Control, reader, writer);
+    fabric.serve(listener);
+
+    let mut early = Vec::new();
+    let mut host = HostWait {
+        inbox: &mut inbox,
+        early: &mut early,
+        deadline,
+        seconds,
+    };
+    let addresses = host
+        .until(Waiting::AddressTable, |m| match m {
+            Message::Peers { addresses } => Some(addresses),
+            _ => None,
+        })
+        .await?;
+    let table = peer_table(addresses, &cfg.host);
+    let my_boot = boot_id();
+    for (n, (_, boot)) in &table {
+        fabric.set_same_machine(*n, *boot == my_boot);
+    }
+    dial_peers(&fabric, &topology, node, &table).await?;
+    let want_mesh = topology.neighbors(node).len();
+    let want_direct = expected_direct(&topology, node).len();
+    wait_for_links(&fabric, want_mesh, want_direct, deadline)
+        .await
+        .map_err(|(mesh, direct)| ClusterError::Timeout {
+            seconds,
+            waiting_for: Waiting::NeighbourLinks {
+                mesh,
+                want_mesh,
+                direct,
+                want_direct,
+            },
+        })?;
+    let _ = fabric.send_control(0, &Message::LinksUp { node });
+    host.until(Waiting::Go, |m| matches!(m, Message::Go).then_some(()))
+        .await?;
+    Ok(Joined {
+        fabric,
+        inbox,
+        node,
+        early,
+    })
+}
+
+/// Calls the host until it answers or `deadline` passes: nodes may start before it listens.
+async fn connect_to_host(
+    host: &str,
+    deadline: tokio::time::Instant,
+) -> Result<TcpStream, ClusterError> {
+    loop {
+        match TcpStream::connect(host).await {
+            Ok(stream) => {
+                let _ = stream.set_nodelay(true);
+                return Ok(stream);
+            }
             Err(e) if tokio::time::Instant::now() < deadline => {
-                tracing::debug!("host {} not reachable yet ({e}); retrying", cfg.host);
+                tracing::debug!("host {host} not reachable yet ({e}); retrying");
                 tokio::time::sleep(Duration::from_millis(200)).await;
             }
-            Err(e) => return Err(io(&format!("cannot reach the host at {}", cfg.host), e)),
-        }
-    };
-    let _ = stream.set_nodelay(true);
-    let local_ip = stream
-        .local_addr()
-        .map_err(|e| io("connection to the host", e))?
-        .ip();
-    let advertise = match &cfg.advertise {
-        Some(a) => a.clone(),
-        None => {
-            let listen_ip = cfg
-                .listen
-                .rsplit_once(':')
-                .map(|(ip, _)| ip.trim_matches(['[', ']']))
-                .unwrap_or("");
-            match listen_ip.parse::<std::net::IpAddr>() {
-                Ok(ip) if !ip.is_unspecified() => std::net::SocketAddr::new(ip, port).to_string(),
-                _ => std::net::SocketAddr::new(local_ip, port).to_string(),
+            Err(source) => {
+                return Err(ClusterError::HostUnreachable {
+                    host: host.to_string(),
+                    source,
+                });
             }
         }
-    };
+    }
+}
+
+/// Proves this node to the host, registers, and reads its slot and the topology.
+async fn register_with_host(
+    cfg: &JoinConfig,
+    stream: TcpStream,
+    advertise: &str,
+) -> Result<(NodeId, Topology, ControlHalves), ClusterError> {
     let (r, w) = stream.into_split();
     let mut reader = FrameReader::new(r);
     let mut writer = FrameWriter::new(w);
@@ -428,7 +590,7 @@ pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
     .await?;
     let register = Message::Register {
         role: cfg.role,
-        advertise: advertise.clone(),
+        advertise: advertise.to_string(),
         pid: std::process::id(),
         hostname: hostname(),
         boot_id: boot_id(),
@@ -436,145 +598,90 @@ pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
     writer
         .write(&Frame::new(0, 0, &register, Box::new([])))
         .await
-        .map_err(|e| io("registering", e))?;
-    let reply = tokio::time::timeout(cfg.timeout, reader.read())
+        .map_err(|source| ClusterError::Register { source })?;
+    let answer = tokio::time::timeout(cfg.timeout, reader.read())
         .await
         .map_err(|_| ClusterError::Timeout {
             seconds: cfg.timeout.as_secs(),
-            missing: "the host's answer".into(),
+            waiting_for: Waiting::HostAnswer,
         })?
-        .map_err(|e| ClusterError::Io(format!("registering: {e}")))?;
-    let (node, topology) = match reply.message() {
-        Ok(Message::Assigned { node, topology }) => (node, topology),
-        Ok(Message::Refused { reason }) => return Err(ClusterError::Refused(reason)),
-        other => {
-            return Err(ClusterError::Protocol(format!(
-                "unexpected answer to registration: {other:?}"
-            )));
-        }
-    };
-    let topology = Topology::from_toml(&topology)
-        .map_err(|e| ClusterError::Protocol(format!("topology from the host: {e}")))?;
-    if topology.role(node) != cfg.role {
-        return Err(ClusterError::Protocol(format!(
-            "the host gave slot {node}, which is not a {}",
-            cfg.role
-        )));
-    }
-    tracing::info!("joined as {} {node}; listening at {advertise}", cfg.role);
-    let topology = Arc::new(topology);
-    let (fabric, mut inbox) = Fabric::new(
-        node,
-        cfg.role,
-        topology.clone(),
-        cfg.secret.clone(),
-        cfg.cluster_id.clone(),
-    );
-    fabric.attach(0, ConnectionKind::Control, reader, writer);
-    fabric.serve(listener);
+        .map_err(|source| ClusterError::RegisterAnswer { source })?;
+    let (node, topology) = read_assignment(answer.message(), cfg.role)?;
+    Ok((node, topology, (reader, writer)))
+}
 
-    let my_boot = boot_id();
-    let mut early = Vec::new();
-    let seconds = cfg.timeout.as_secs();
-    async fn wait(
-        inbox: &mut mpsc::UnboundedReceiver<Delivery>,
-        deadline: tokio::time::Instant,
-        seconds: u64,
-        what: &str,
-    ) -> Result<Option<Delivery>, ClusterError> {
-        tokio::time::timeout_at(deadline, inbox.recv())
-            .await
-            .map_err(|_| ClusterError::Timeout {
-                seconds,
-                missing: what.to_string(),
-            })
-    }
-    // The address table.
-    let addresses = loop {
-        match wait(
-            &mut inbox,
-            deadline,
-            seconds,
-            "the address table from the host",
-        )
-        .await?
-        {
-            Some(Delivery::Frame {
-                frame,
-                via: Via::Control(0),
-            }) => match frame.message() {
-                Ok(Message::Peers { addresses }) => break addresses,
-                Ok(Message::Shutdown { reason }) => return Err(ClusterError::Refused(reason)),
-                _ => {}
-            },
-            Some(Delivery::Lost { peer: 0, .. }) | None => return Err(ClusterError::HostLost),
-            Some(d) => early.push(d),
+/// A joining node's wait for the host's next word.
+struct HostWait<'a> {
+    inbox: &'a mut mpsc::UnboundedReceiver<Delivery>,
+    /// What arrives meanwhile for the role code (frames from peers that are ready first).
+    early: &'a mut Vec<Delivery>,
+    deadline: tokio::time::Instant,
+    seconds: u64,
+}
+
+impl HostWait<'_> {
+    /// Waits for the host's control message that `pick` takes. A shutdown from the host
+    /// means the cluster will not form; other control messages from it are dropped.
+    async fn until<T>(
+        &mut self,
+        waiting_for: Waiting,
+        pick: impl Fn(Message) -> Option<T>,
+    ) -> Result<T, ClusterError> {
+        loop {
+            let delivery = tokio::time::timeout_at(self.deadline, self.inbox.recv())
+                .await
+                .map_err(|_| ClusterError::Timeout {
+                    seconds: self.seconds,
+                    waiting_for: waiting_for.clone(),
+                })?;
+            match delivery {
+                Some(Delivery::Frame {
+                    frame,
+                    via: Via::Control(0),
+                }) => match frame.message() {
+                    Ok(Message::Shutdown { reason }) => return Err(ClusterError::Refused(reason)),
+                    Ok(message) => {
+                        if let Some(picked) = pick(message) {
+                            return Ok(picked);
+                        }
+                    }
+                    Err(_) => {}
+                },
+                Some(Delivery::Lost {
+                    peer: 0,
+                    kind: ConnectionKind::Control,
+                    ..
+                })
+                | None => return Err(ClusterError::HostLost),
+                Some(d) => self.early.push(d),
+            }
         }
-    };
-    let mut table: HashMap<NodeId, (String, String)> =
-        addresses.into_iter().map(|(n, a, b)| (n, (a, b))).collect();
-    if let Some(host) = table.get_mut(&0) {
-        host.0 = cfg.host.clone();
     }
-    for (n, (_, b)) in &table {
-        fabric.set_same_machine(*n, *b == my_boot);
-    }
+}
+
+/// Opens this node's own connections, all at once (each may have to wait for its peer to
+/// start listening).
+async fn dial_peers(
+    fabric: &Fabric,
+    topology: &Topology,
+    node: NodeId,
+    table: &HashMap<NodeId, (String, String)>,
+) -> Result<(), ClusterError> {
     let mut dialing = Vec::new();
-    for (peer, kind) in dials(&topology, node) {
-        let Some((addr, _)) = table.get(&peer) else {
-            return Err(ClusterError::Protocol(format!(
-                "the address table has no node {peer}"
-            )));
+    for (peer, kind) in dials(topology, node) {
+        let Some((address, _)) = table.get(&peer) else {
+            return Err(ClusterError::MissingAddress { node: peer });
         };
-        let f = fabric.clone();
-        let addr = addr.clone();
-        dialing.push(tokio::spawn(async move { f.dial(peer, &addr, kind).await }));
+        let fabric = fabric.clone();
+        let address = address.clone();
+        dialing.push(tokio::spawn(async move {
+            fabric.dial(peer, &address, kind).await
+        }));
     }
-    for d in dialing {
-        d.await.map_err(|e| ClusterError::Io(e.to_string()))??;
+    for dial in dialing {
+        dial.await??;
     }
-    let want_mesh = topology.neighbors(node).len();
-    let want_direct = expected_direct(&topology, node).len();
-    while fabric.mesh_links_up() < want_mesh || fabric.direct_links_up() < want_direct {
-        if tokio::time::Instant::now() > deadline {
-            let missing = format!(
-                "links from neighbours ({} of {want_mesh} mesh, {} of {want_direct} direct)",
-                fabric.mesh_links_up(),
-                fabric.direct_links_up()
-            );
-            return Err(ClusterError::Timeout {
-                seconds: cfg.timeout.as_secs(),
-                missing,
-            });
-        }
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
-    let _ = fabric.send_control(0, &Message::LinksUp { node });
-    loop {
-        match wait(&mut inbox, deadline, seconds, "the host's go").await? {
-            Some(Delivery::Frame {
-                frame,
-                via: Via::Control(0),
-            }) => match frame.message() {
-                Ok(Message::Go) => break,
-                Ok(Message::Shutdown { reason }) => return Err(ClusterError::Refused(reason)),
-                _ => {}
-            },
-            Some(Delivery::Lost {
-                peer: 0,
-                kind: ConnectionKind::Control,
-                ..
-            })
-            | None => return Err(ClusterError::HostLost),
-            Some(d) => early.push(d),
-        }
-    }
-    Ok(Joined {
-        fabric,
-        inbox,
-        node,
-        early,
-    })
+    Ok(())
 }
 
 /// A node's way out after the host said stop: stop reporting losses, then wait (briefly)

@@ -5,13 +5,16 @@
 //! * [`model`]: the paper's serial-link, DMA and G-bus timings, applied exactly once, here.
 //! * [`clock`]: the shared monotonic clock and a timer precise well below a millisecond.
 //! * [`node`]: the runtime every process runs: links, forwarding, delivery.
+//! * [`registry`]: the decisions of forming a cluster (slots, refusals, completion, timeout), with no I/O.
 //! * [`cluster`]: forming a cluster: registration with the host, addresses, links up.
+//! * [`role`]: the life every node role shares: join, take deliveries, obey the host, leave.
 
 pub mod clock;
 pub mod cluster;
 pub mod diag;
 pub mod model;
 pub mod node;
+pub mod registry;
 pub mod role;
 pub mod routing;
 pub mod topology;

@@ -61,10 +61,20 @@ pub struct Topology {
     adjacency: Vec<Vec<NodeId>>,
 }
 
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, thiserror::Error)]
 pub enum TopologyError {
     #[error("topology file is not valid TOML: {0}")]
-    Toml(String),
+    Toml(#[source] toml::de::Error),
+    #[error("cannot read the topology file {path}: {source}")]
+    Read {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("in the topology file {path}: {source}")]
+    File {
+        path: std::path::PathBuf,
+        source: Box<TopologyError>,
+    },
     #[error("unknown topology preset {0:?} (magg, tiny, or grid:CARDSxROWSxCOLS)")]
     UnknownPreset(String),
     #[error("invalid topology: {0}")]
@@ -122,10 +132,14 @@ impl Topology {
         }
         let path = std::path::Path::new(spec);
         if path.exists() {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| TopologyError::Invalid(format!("{}: {e}", path.display())))?;
-            return Topology::from_toml(&text)
-                .map_err(|e| TopologyError::Invalid(format!("{}: {e}", path.display())));
+            let text = std::fs::read_to_string(path).map_err(|source| TopologyError::Read {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            return Topology::from_toml(&text).map_err(|e| TopologyError::File {
+                path: path.to_path_buf(),
+                source: Box::new(e),
+            });
         }
         Err(TopologyError::UnknownPreset(spec.to_string()))
     }
@@ -163,7 +177,7 @@ impl Topology {
     }
 
     pub fn from_toml(text: &str) -> Result<Topology, TopologyError> {
-        let file: File = toml::from_str(text).map_err(|e| TopologyError::Toml(e.to_string()))?;
+        let file: File = toml::from_str(text).map_err(TopologyError::Toml)?;
         Topology::from_file(file)
     }
 
@@ -563,5 +577,28 @@ mod tests {
             let e = Topology::from_toml(text).unwrap_err().to_string();
             assert!(e.contains(needle), "{e:?} should mention {needle:?}");
         }
+    }
+
+    #[test]
+    fn a_topology_file_that_cannot_be_read_or_parsed_says_which() {
+        let dir = std::env::temp_dir().join(format!("magg-topology-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, "name = [").unwrap();
+        let e = Topology::resolve(bad.to_str().unwrap()).unwrap_err();
+        let TopologyError::File { path, source } = &e else {
+            panic!("{e}")
+        };
+        assert_eq!(path, &bad);
+        assert!(matches!(**source, TopologyError::Toml(_)), "{e}");
+        let start = format!(
+            "in the topology file {}: topology file is not valid TOML",
+            bad.display()
+        );
+        assert!(e.to_string().starts_with(&start), "{e}");
+        // A directory exists but cannot be read as a file.
+        let e = Topology::resolve(dir.to_str().unwrap()).unwrap_err();
+        assert!(matches!(e, TopologyError::Read { .. }), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
