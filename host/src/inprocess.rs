@@ -150,6 +150,21 @@ impl Keeper {
         }
     }
 
+    /// The render stopped before the image was whole: what is finished is kept on disk.
+    fn ended_early(mut self, e: DataError) -> RenderError {
+        self.save();
+        match (e, self.failed) {
+            // Interrupted with nothing kept: that the checkpoint failed is the news.
+            (DataError::Cancelled, Some(failed)) => failed.into(),
+            (DataError::Cancelled, None) => RenderError::Interrupted {
+                kept: self.checkpoint.rows_finished(),
+                height: self.checkpoint.image.height,
+                path: self.path,
+            },
+            (e, _) => e.into(),
+        }
+    }
+
     fn save(&mut self) {
         self.last_write = Instant::now();
         if let Err(e) = self.checkpoint.write(&self.path)
@@ -161,14 +176,18 @@ impl Keeper {
     }
 }
 
-/// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)
-/// once `cancel` is set.
-pub fn render_in_process_until(
-    config: &RenderConfig,
-    cancel: &AtomicBool,
-) -> Result<RenderStats, RenderError> {
-    check_settings(config)?;
-    let t0 = Instant::now();
+/// A scene read and prepared, with the settings and camera it will be rendered with.
+struct Prepared {
+    scene: renderer::Scene,
+    data: renderer::MemoryData,
+    settings: RenderSettings,
+    camera: renderer::Camera,
+    /// What the pixels depend on, for the checkpoint.
+    key: CheckpointKey,
+    triangles: u64,
+}
+
+fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
     let (desc, warnings) = read_scene(&config.scene, config.environment)?;
     for w in &warnings {
         tracing::warn!("{}: {w}", config.scene);
@@ -187,6 +206,32 @@ pub fn render_in_process_until(
         settings.height = ((settings.width as f32 / a).round() as u32).clamp(1, 32768);
     }
     let key = CheckpointKey::new(scene_sha256, &config.prepare, &settings, &camera);
+    Ok(Prepared {
+        scene,
+        data,
+        settings,
+        camera,
+        key,
+        triangles,
+    })
+}
+
+/// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)
+/// once `cancel` is set.
+pub fn render_in_process_until(
+    config: &RenderConfig,
+    cancel: &AtomicBool,
+) -> Result<RenderStats, RenderError> {
+    check_settings(config)?;
+    let t0 = Instant::now();
+    let Prepared {
+        scene,
+        data,
+        settings,
+        camera,
+        key,
+        triangles,
+    } = prepare(config)?;
     let path = checkpoint::path_for(&config.output);
     let start = checkpoint::start(&path, config.resume, key, settings.width, settings.height)?;
     let load_s = t0.elapsed().as_secs_f64();
@@ -237,27 +282,8 @@ pub fn render_in_process_until(
             );
         },
     );
-    let mut keeper = keeper.into_inner().expect("checkpoint lock");
-    let (image, trace) = match rendered {
-        Ok(r) => r,
-        Err(DataError::Cancelled) => {
-            progress.finish();
-            keeper.save();
-            if let Some(e) = keeper.failed {
-                return Err(e.into());
-            }
-            return Err(RenderError::Interrupted {
-                path,
-                kept: keeper.checkpoint.rows_finished(),
-                height: settings.height,
-            });
-        }
-        Err(e) => {
-            keeper.save();
-            return Err(e.into());
-        }
-    };
     progress.finish();
+    let (image, trace) = rendered.map_err(|e| keeper.into_inner().expect("lock").ended_early(e))?;
     let render_s = t1.elapsed().as_secs_f64();
 
     let t2 = Instant::now();
