@@ -6,7 +6,7 @@ use std::{path::Path, sync::atomic::AtomicBool};
 
 use protocol::{FrameHeader, HEADER_LEN, Message};
 use renderer::{
-    Camera, MemoryData, Projection, RenderSettings, Scene, chunk::Chunk, render::render_rect,
+    Camera, MemoryData, Projection, RenderSettings, SceneHeader, chunk::Chunk, render::render_rect,
 };
 
 /// The targets, by name (the folder names under `fuzz/corpus/`).
@@ -74,7 +74,7 @@ pub fn chunk(data: &[u8]) {
 /// A scene header as a fork or render node receives it; if it validates, rendering with it
 /// (and no data at all) must end in errors, not panics.
 pub fn scene_header(data: &[u8]) {
-    let Ok(scene) = protocol::decode_value::<Scene>(data) else {
+    let Ok(scene) = protocol::decode_value::<SceneHeader>(data) else {
         return;
     };
     if scene.validate().is_err() {

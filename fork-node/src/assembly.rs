@@ -6,7 +6,7 @@
 use std::sync::Arc;
 
 use protocol::{DataId, Frame, Message, NodeId, bytes_to_words, decode_value, encode_value};
-use renderer::{MemoryData, PrepareOptions, Scene, SceneDesc};
+use renderer::{MemoryData, PrepareOptions, SceneDesc, SceneHeader};
 
 use crate::ForkNode;
 
@@ -95,7 +95,7 @@ pub(crate) enum PrepareError {
 }
 
 /// Decodes the assembled scene description and prepares it.
-pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(Scene, MemoryData), PrepareError> {
+pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(SceneHeader, MemoryData), PrepareError> {
     let of = a.of.unwrap_or(PartOf {
         parts: 0,
         total: 0,
@@ -177,7 +177,7 @@ impl ForkNode {
 
     /// Places chunks and tiles round-robin on the fork nodes and sends each its share, the
     /// header and the address table; the host gets the header too.
-    fn place(self: &Arc<ForkNode>, scene: Scene, data: MemoryData) {
+    fn place(self: &Arc<ForkNode>, scene: SceneHeader, data: MemoryData) {
         let f = &self.fabric;
         let forks = f.topology().fork_nodes();
         let placement = Placement {

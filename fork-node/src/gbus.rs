@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use fabric::{Model, Route, model::Buses};
 use protocol::{DataId, Message, NodeId};
-use renderer::Scene;
+use renderer::SceneHeader;
 
 use crate::ForkNode;
 
@@ -44,7 +44,7 @@ impl GBus {
 
 /// How many bytes item `id` puts on the bus, as the arbiter is told before the data itself
 /// is here; a chunk this card has no header for counts as nothing.
-pub(crate) fn transfer_bytes(id: DataId, scene: Option<&Scene>) -> u32 {
+pub(crate) fn transfer_bytes(id: DataId, scene: Option<&SceneHeader>) -> u32 {
     match id {
         DataId::Synthetic { bytes } => bytes,
         DataId::Chunk(c) => scene

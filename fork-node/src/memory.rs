@@ -5,13 +5,13 @@
 use std::{collections::HashMap, sync::Arc};
 
 use protocol::{DataId, NodeId, decode_value};
-use renderer::Scene;
+use renderer::SceneHeader;
 
 use crate::ForkNode;
 
 #[derive(Default)]
 pub(crate) struct SharedMemory {
-    pub scene: Option<Arc<Scene>>,
+    pub scene: Option<Arc<SceneHeader>>,
     /// The header as it travelled (bincode), to pass on to render nodes unchanged.
     pub header_bytes: Option<Arc<Vec<u8>>>,
     pub chunk_owner: Vec<NodeId>,
@@ -66,8 +66,8 @@ pub(crate) fn decode_header(
     bytes: &[u8],
     chunk_owner: &[NodeId],
     tile_owner: &[NodeId],
-) -> Result<Scene, HeaderError> {
-    let scene: Scene = decode_value(bytes)?;
+) -> Result<SceneHeader, HeaderError> {
+    let scene: SceneHeader = decode_value(bytes)?;
     scene.validate()?;
     if chunk_owner.len() != scene.chunks.len() || tile_owner.len() != scene.tile_count as usize {
         return Err(HeaderError::AddressTable);
@@ -131,7 +131,7 @@ mod tests {
 
     use super::*;
 
-    fn demo() -> Scene {
+    fn demo() -> SceneHeader {
         let opts = renderer::PrepareOptions {
             chunk_triangles: 64,
         };

@@ -19,7 +19,7 @@ use protocol::{
     Frame, JobSpec, Message, NodeId, NodeStats, Rect, Role, Transfer, TransferMode, bytes_to_words,
     decode_value, encode_value, words_to_bytes,
 };
-use renderer::Scene;
+use renderer::SceneHeader;
 use serde::Serialize;
 
 use crate::{
@@ -411,7 +411,7 @@ async fn await_header(
     cluster: &mut Cluster,
     cancel: &AtomicBool,
     faults: &mut Faults,
-) -> Result<Scene, ClusterRenderError> {
+) -> Result<SceneHeader, ClusterRenderError> {
     let master = cluster.formed.fabric.topology().master_fork();
     loop {
         let Some(delivery) = next(cluster, cancel).await? else {
@@ -450,11 +450,11 @@ async fn await_header(
 }
 
 /// The scene of a header frame, checked as the render nodes check it.
-fn read_header(frame: &Frame, len: u64) -> Result<Scene, ClusterRenderError> {
+fn read_header(frame: &Frame, len: u64) -> Result<SceneHeader, ClusterRenderError> {
     let node = frame.header.sender;
     let bytes = words_to_bytes(&frame.data, len as usize)
         .ok_or(ClusterRenderError::ShortHeader { node, len })?;
-    let scene: Scene =
+    let scene: SceneHeader =
         decode_value(bytes).map_err(|source| ClusterRenderError::HeaderDecode { node, source })?;
     scene
         .validate()
@@ -473,7 +473,7 @@ struct JobPlan {
 /// each render node, and the subscreens.
 fn plan_job(
     config: &ClusterRenderConfig,
-    scene: &Scene,
+    scene: &SceneHeader,
     render_nodes: Vec<NodeId>,
 ) -> Result<JobPlan, ClusterRenderError> {
     let rc = &config.render;
@@ -891,7 +891,7 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
 
 /// What a finished render leaves for its statistics.
 struct Finished<'a> {
-    scene: &'a Scene,
+    scene: &'a SceneHeader,
     plan: &'a JobPlan,
     subscreens: u32,
     subscreens_split: u32,

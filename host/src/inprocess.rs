@@ -178,7 +178,7 @@ impl Keeper {
 
 /// A scene read and prepared, with the settings and camera it will be rendered with.
 struct Prepared {
-    scene: renderer::Scene,
+    scene: renderer::SceneHeader,
     data: renderer::MemoryData,
     settings: RenderSettings,
     camera: renderer::Camera,

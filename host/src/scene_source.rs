@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use renderer::{MemoryData, PrepareOptions, Scene, SceneDesc, demo};
+use renderer::{MemoryData, PrepareOptions, SceneDesc, SceneHeader, demo};
 
 #[derive(Clone, Debug, PartialEq)]
 pub enum SceneSource {
@@ -21,7 +21,7 @@ impl std::fmt::Display for SceneSource {
 
 /// A scene ready to render, with what the loader had to say about it.
 pub struct LoadedScene {
-    pub scene: Scene,
+    pub scene: SceneHeader,
     pub data: MemoryData,
     pub warnings: Vec<String>,
     pub triangles: u64,

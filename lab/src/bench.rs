@@ -9,7 +9,7 @@ use std::{path::PathBuf, sync::atomic::AtomicBool, time::Instant};
 
 use glam::{Vec2, Vec3};
 use renderer::{
-    Camera, IntegratorKind, MemoryData, PrepareOptions, RenderSettings, Scene, SceneDesc,
+    Camera, IntegratorKind, MemoryData, PrepareOptions, RenderSettings, SceneDesc, SceneHeader,
     chunk::MeshData,
     material::Material,
     ray::Ray,
@@ -91,7 +91,7 @@ fn big_scene(config: &BenchConfig) -> Result<(String, SceneDesc), crate::LabErro
 }
 
 /// Closest-hit rays per second on this thread, and the fraction that hit.
-fn trace_rate(scene: &Scene, data: &MemoryData, rays: &[Ray]) -> (f64, f64) {
+fn trace_rate(scene: &SceneHeader, data: &MemoryData, rays: &[Ray]) -> (f64, f64) {
     let tracer = Tracer::new(scene, data);
     let key = AlphaKey {
         sampler: Sampler::new(0, 0, 0, 0),

@@ -21,7 +21,7 @@ use std::{
 use glam::{DVec3, Vec3A};
 use render_node::cache::DemandCache;
 use renderer::{
-    PrepareOptions, Scene, SceneData,
+    PrepareOptions, SceneData, SceneHeader,
     ray::Ray,
     sampler::Sampler,
     trace::{AlphaKey, Tracer},
@@ -134,7 +134,7 @@ fn read_rays(path: &Path, shift: DVec3) -> Result<Vec<Ray>, RaysError> {
 /// Casts every ray once on this thread, writing each result into `out`; returns the
 /// seconds taken.
 fn cast<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     rays: &[Ray],
     any_hit: bool,

@@ -11,7 +11,7 @@
 use std::{path::PathBuf, sync::atomic::AtomicBool, time::Instant};
 
 use renderer::{
-    Image, IntegratorKind, MemoryData, PrepareOptions, RenderSettings, Scene,
+    Image, IntegratorKind, MemoryData, PrepareOptions, RenderSettings, SceneHeader,
     integrator::WhittedLimits, render::render_image, trace::TraceStats,
 };
 use serde::Serialize;
@@ -72,7 +72,7 @@ pub enum WhittedBenchError {
 }
 
 fn render(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &MemoryData,
     settings: &RenderSettings,
     threads: usize,

@@ -195,7 +195,7 @@ pub enum Message {
         len: u32,
         chunk_triangles: u32,
     },
-    /// The prepared scene header (bincode of `renderer::Scene`, `len` bytes, as data) and the
+    /// The prepared scene header (bincode of `renderer::SceneHeader`, `len` bytes, as data) and the
     /// address table: which fork node holds each chunk and each texture tile.
     Header {
         len: u64,

@@ -23,7 +23,7 @@ use fabric::{
     role::{RoleError, RoleHandler, run_role},
 };
 use protocol::{Frame, Message, NodeId, NodeStats, Role, decode_value, words_to_bytes};
-use renderer::Scene;
+use renderer::SceneHeader;
 use start::Render;
 use worker::{ActiveMap, WorkStats};
 
@@ -178,9 +178,9 @@ fn decode_header(
     len: u64,
     chunk_owner: &[NodeId],
     tile_owner: &[NodeId],
-) -> Result<Scene, HeaderError> {
+) -> Result<SceneHeader, HeaderError> {
     let bytes = words_to_bytes(data, len as usize).ok_or(HeaderError::Short)?;
-    let scene: Scene = decode_value(bytes)?;
+    let scene: SceneHeader = decode_value(bytes)?;
     scene.validate()?;
     if chunk_owner.len() != scene.chunks.len() || tile_owner.len() != scene.tile_count as usize {
         return Err(HeaderError::AddressTable);
@@ -249,14 +249,14 @@ mod tests {
 
     use super::*;
 
-    fn demo() -> Scene {
+    fn demo() -> SceneHeader {
         let opts = renderer::PrepareOptions {
             chunk_triangles: 64,
         };
         renderer::prepare(renderer::demo::demo_scene(), &opts).0
     }
 
-    fn header(scene: &Scene) -> (Box<[u32]>, u64) {
+    fn header(scene: &SceneHeader) -> (Box<[u32]>, u64) {
         let bytes = encode_value(scene);
         (bytes_to_words(&bytes), bytes.len() as u64)
     }

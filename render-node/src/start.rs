@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use fabric::Fabric;
 use protocol::{DataId, JobSpec, NodeId, TransferMode};
-use renderer::Scene;
+use renderer::SceneHeader;
 
 use crate::{
     cache::{DemandCache, Source},
@@ -18,7 +18,7 @@ use crate::{
 /// What this node knows of the current render.
 #[derive(Default)]
 pub(crate) struct Render {
-    pub scene: Option<Arc<Scene>>,
+    pub scene: Option<Arc<SceneHeader>>,
     pub chunk_owner: Vec<NodeId>,
     pub tile_owner: Vec<NodeId>,
     pub job: Option<Arc<JobSpec>>,
@@ -31,7 +31,7 @@ pub(crate) struct Render {
 
 /// Everything rendering needs, all here.
 pub(crate) struct Ready {
-    pub scene: Arc<Scene>,
+    pub scene: Arc<SceneHeader>,
     pub job: Arc<JobSpec>,
     /// This card's fork node, which serves the data and forwards the pixels.
     pub fork: NodeId,
@@ -172,7 +172,7 @@ mod tests {
 
     use super::*;
 
-    fn scene() -> Arc<Scene> {
+    fn scene() -> Arc<SceneHeader> {
         let opts = renderer::PrepareOptions {
             chunk_triangles: 64,
         };
@@ -190,7 +190,7 @@ mod tests {
         })
     }
 
-    fn largest_chunk(scene: &Scene) -> u64 {
+    fn largest_chunk(scene: &SceneHeader) -> u64 {
         scene
             .chunks
             .iter()

@@ -13,7 +13,7 @@ use std::{
 
 use fabric::{Fabric, Route};
 use protocol::{JobSpec, Message, NodeId, Rect};
-use renderer::{Scene, render::render_pixel, trace::Tracer};
+use renderer::{SceneHeader, render::render_pixel, trace::Tracer};
 
 use crate::cache::{DemandCache, Reader};
 
@@ -89,7 +89,7 @@ pub type ActiveMap = Arc<Mutex<HashMap<u32, Arc<Active>>>>;
 pub struct Worker {
     pub fabric: Fabric,
     pub runtime: tokio::runtime::Handle,
-    pub scene: Arc<Scene>,
+    pub scene: Arc<SceneHeader>,
     pub job: Arc<JobSpec>,
     pub cache: Arc<DemandCache>,
     pub fork: NodeId,

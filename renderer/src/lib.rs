@@ -28,5 +28,5 @@ pub mod triangle;
 pub use camera::{Camera, Projection};
 pub use integrator::IntegratorKind;
 pub use render::{Image, Rect, RenderSettings};
-pub use scene::{PrepareOptions, Scene, SceneDesc, prepare};
+pub use scene::{PrepareOptions, SceneDesc, SceneHeader, prepare};
 pub use source::{DataError, MemoryData, SceneData};

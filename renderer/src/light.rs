@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     math::{PI, luminance, safe_sqrt},
-    scene::Scene,
+    scene::SceneHeader,
     source::{DataError, SceneData},
     texture,
 };
@@ -171,7 +171,7 @@ pub fn spot_falloff(cos: f32, cos_inner: f32, cos_outer: f32) -> f32 {
 
 /// Emitted radiance of a triangle light's material at `uv`.
 pub fn triangle_radiance<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     material: u32,
     uv: Vec2,
@@ -192,7 +192,7 @@ impl Light {
     }
 
     /// Estimated emitted power (luminance), for choosing among lights.
-    pub fn power(&self, scene: &Scene, scene_radius: f32) -> f64 {
+    pub fn power(&self, scene: &SceneHeader, scene_radius: f32) -> f64 {
         let p = match self {
             Light::Point { intensity, .. } => 4.0 * PI * luminance(*intensity),
             Light::Spot {
@@ -235,7 +235,7 @@ impl Light {
     /// Samples light arriving at `p` (a point on a surface, or anywhere).
     pub fn sample<D: SceneData>(
         &self,
-        scene: &Scene,
+        scene: &SceneHeader,
         data: &D,
         p: Vec3,
         u: (f32, f32),

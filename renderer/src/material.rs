@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     chunk::SurfaceAttributes,
-    scene::Scene,
+    scene::SceneHeader,
     source::{DataError, SceneData},
     texture,
 };
@@ -172,7 +172,7 @@ pub fn uv_for(t: &TexRef, s: &SurfaceAttributes) -> Vec2 {
 /// Samples a texture reference, or returns `None` when the material has no texture there.
 #[inline]
 pub fn sample_ref<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     t: &Option<TexRef>,
     s: &SurfaceAttributes,
@@ -208,7 +208,7 @@ pub struct ShadingParams {
 
 /// Alpha of a material at a surface point (base colour alpha times texture and vertex colour).
 pub fn alpha_at<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     m: &Material,
     s: &SurfaceAttributes,
@@ -225,7 +225,7 @@ pub fn alpha_at<D: SceneData>(
 
 /// Applies the material's textures at a surface point.
 pub fn shading_params<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     m: &Material,
     s: &SurfaceAttributes,

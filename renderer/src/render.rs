@@ -15,7 +15,7 @@ use crate::{
     integrator::{self, IntegratorKind, WhittedLimits},
     math::luminance,
     sampler::Sampler,
-    scene::Scene,
+    scene::SceneHeader,
     source::{DataError, SceneData},
     trace::{TraceStats, Tracer},
 };
@@ -170,7 +170,7 @@ pub fn render_pixel<D: SceneData>(
 
 /// Renders a rectangle into `out` (row-major within the rectangle).
 pub fn render_rect<D: SceneData>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     camera: &Camera,
     settings: &RenderSettings,
@@ -254,7 +254,7 @@ pub fn tiles_of_rows_left(width: u32, size: u32, done: &[bool]) -> Vec<Rect> {
 /// `progress(pixels_done, pixels_total)` is called after every tile.
 #[allow(clippy::too_many_arguments)]
 pub fn render_image<D: SceneData + Sync>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     camera: &Camera,
     settings: &RenderSettings,
@@ -286,7 +286,7 @@ pub fn render_image<D: SceneData + Sync>(
 /// calls `finished(rect, pixels)` as each rectangle is done, from the thread that did it.
 #[allow(clippy::too_many_arguments)]
 pub fn render_rects<D: SceneData + Sync>(
-    scene: &Scene,
+    scene: &SceneHeader,
     data: &D,
     camera: &Camera,
     settings: &RenderSettings,

@@ -2,7 +2,7 @@
 //!
 //! [`SceneDesc`] is what a loader produces: world-space meshes, materials, images, lights and
 //! cameras. [`prepare`] turns it into the form rendering uses, split the way the cluster
-//! moves it: a [`Scene`] header (cameras, materials, lights, texture descriptions, the
+//! moves it: a [`SceneHeader`] (cameras, materials, lights, texture descriptions, the
 //! top-level tree over chunk bounds; small, sent to every render node) and [`MemoryData`]
 //! (the chunks and texture tiles, which render nodes fetch on demand).
 
@@ -269,7 +269,7 @@ impl Tlas {
 
 /// Everything about a scene except its shape and texture data.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
-pub struct Scene {
+pub struct SceneHeader {
     pub cameras: Vec<Camera>,
     pub materials: Vec<Material>,
     pub textures: Vec<TextureInfo>,
@@ -291,7 +291,7 @@ pub struct Scene {
     pub tile_count: u32,
 }
 
-impl Scene {
+impl SceneHeader {
     /// The punctual lights: the prefix of `lights` that are points, spots and suns.
     pub fn punctual_lights(&self) -> &[Light] {
         let n = self.lights.iter().take_while(|l| l.is_delta()).count();
@@ -430,7 +430,7 @@ pub enum SceneError {
 
 /// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
 /// light list and cuts textures into tiles. Deterministic.
-pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
+pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
     let mut chunks: Vec<Chunk> = Vec::new();
     let mut remap = Vec::new();
     let mut builder = bvh::Builder::default();
@@ -572,7 +572,7 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
     let top = bvh::build(&boxes, 1);
 
     let data = MemoryData { chunks, tiles };
-    let mut scene = Scene {
+    let mut scene = SceneHeader {
         cameras: desc.cameras,
         materials: desc.materials,
         textures,
@@ -602,7 +602,7 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (Scene, MemoryData) {
     (scene, data)
 }
 
-impl Scene {
+impl SceneHeader {
     /// The camera called `name` ("auto": one framing the whole scene), else the first,
     /// else one framing the whole scene.
     pub fn camera(&self, name: Option<&str>, aspect: f32) -> Result<Camera, SceneError> {

@@ -12,7 +12,7 @@ use crate::{
     material::{self, AlphaMode},
     ray::{Ray, RayQuery},
     sampler::Sampler,
-    scene::Scene,
+    scene::SceneHeader,
     source::{DataError, SceneData},
     triangle::TriHit,
 };
@@ -69,7 +69,7 @@ enum SurfaceKind {
 }
 
 pub struct Tracer<'a, D: SceneData> {
-    pub scene: &'a Scene,
+    pub scene: &'a SceneHeader,
     pub data: &'a D,
     pub camera_rays: Cell<u64>,
     pub secondary_rays: Cell<u64>,
@@ -77,7 +77,7 @@ pub struct Tracer<'a, D: SceneData> {
 }
 
 impl<'a, D: SceneData> Tracer<'a, D> {
-    pub fn new(scene: &'a Scene, data: &'a D) -> Tracer<'a, D> {
+    pub fn new(scene: &'a SceneHeader, data: &'a D) -> Tracer<'a, D> {
         Tracer {
             scene,
             data,

@@ -70,7 +70,7 @@ fn closed_scene(
     scale: f32,
     offset: Vec3,
     chunk: usize,
-) -> (renderer::Scene, renderer::MemoryData) {
+) -> (renderer::SceneHeader, renderer::MemoryData) {
     // The lumps move vertices off the seam; the same index on both sides keeps it closed.
     let desc = SceneDesc {
         meshes: vec![lumpy(seed, scale, offset)],
