@@ -67,8 +67,22 @@ pub enum WhittedBenchError {
     },
     #[error("no .gltf or .glb file under {0}")]
     NoScenes(PathBuf),
-    #[error("rendering {scene}: {reason}")]
-    Render { scene: String, reason: String },
+    #[error("rendering {scene}: {source}")]
+    Render {
+        scene: String,
+        source: RenderFailure,
+    },
+}
+
+/// Why one scene of the benchmark could not be rendered or compared.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderFailure {
+    #[error(transparent)]
+    Camera(#[from] renderer::scene::SceneError),
+    #[error(transparent)]
+    Data(#[from] renderer::DataError),
+    #[error(transparent)]
+    Compare(#[from] crate::compare::SizeMismatch),
 }
 
 fn render(
@@ -76,10 +90,8 @@ fn render(
     data: &MemoryData,
     settings: &RenderSettings,
     threads: usize,
-) -> Result<(Image, TraceStats, f64), String> {
-    let camera = scene
-        .camera(None, settings.width as f32 / settings.height as f32)
-        .map_err(|e| e.to_string())?;
+) -> Result<(Image, TraceStats, f64), RenderFailure> {
+    let camera = scene.camera(None, settings.width as f32 / settings.height as f32)?;
     let start = Instant::now();
     let (img, stats) = render_image(
         scene,
@@ -90,8 +102,7 @@ fn render(
         16,
         &AtomicBool::new(false),
         &|_, _| {},
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     Ok((img, stats, start.elapsed().as_secs_f64()))
 }
 
@@ -155,9 +166,9 @@ pub fn run(
         let triangles = loaded.desc.triangle_count() as u64;
         let has_glass = loaded.desc.materials.iter().any(|m| m.transmission > 0.0);
         let (scene, data) = renderer::prepare(loaded.desc, &PrepareOptions::default());
-        let fail = |reason: String| WhittedBenchError::Render {
+        let fail = |source: RenderFailure| WhittedBenchError::Render {
             scene: name.clone(),
-            reason,
+            source,
         };
         let (_, _, path_seconds) =
             render(&scene, &data, &path_settings, cfg.threads).map_err(fail)?;
@@ -168,7 +179,7 @@ pub fn run(
                 render(&scene, &data, &tight_settings, cfg.threads).map_err(fail)?;
             Some(
                 crate::compare::compare(&img, &tight)
-                    .map_err(|e| fail(e.to_string()))?
+                    .map_err(|e| fail(e.into()))?
                     .rel_mse,
             )
         } else {
@@ -209,10 +220,10 @@ pub fn run(
         ..whitted_settings
     };
     let (_, stats, seconds) =
-        render(&scene, &data, &hostile_settings, cfg.threads).map_err(|reason| {
+        render(&scene, &data, &hostile_settings, cfg.threads).map_err(|source| {
             WhittedBenchError::Render {
                 scene: "glass shells".into(),
-                reason,
+                source,
             }
         })?;
     let hostile = HostileRow {

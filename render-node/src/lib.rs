@@ -5,8 +5,8 @@
 //!
 //! The node's life (joining, stopping, losing the host) is [`fabric::role::run_role`]'s;
 //! this crate adds what a render node does with its messages: collect the scene header, the
-//! job and any batch data until rendering can start ([`start`]), give back unbegun rows when
-//! the host asks, report its statistics, and run the host's measurements ([`measure`]).
+//! job and any batch data until rendering can start (`start`), give back unbegun rows when
+//! the host asks, report its statistics, and run the host's measurements (`measure`).
 
 pub mod cache;
 mod measure;
