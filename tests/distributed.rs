@@ -269,3 +269,29 @@ fn interrupting_the_host_stops_every_process() {
         assert!(exited(k), "node process {k} outlived the host");
     }
 }
+
+/// The local subscreen order changes who renders what, never a pixel.
+#[test]
+fn local_subscreen_order_matches_one_process() {
+    let dir = scratch("local-order");
+    let scene = helmet();
+    let scene = scene.to_str().unwrap();
+    let size = ["--width", "96", "--height", "72", "--spp", "2"];
+    let reference = dir.join("ref.pfm");
+    let o = render(
+        &[&[scene, "--in-process"][..], &size].concat(),
+        &reference,
+        None,
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = dir.join("cluster.pfm");
+    let stats = dir.join("stats.json");
+    let cluster = [
+        scene, "--spawn", "tiny", "--order", "local", "--cache", "20",
+    ];
+    let o = render(&[&cluster[..], &size].concat(), &out, Some(&stats));
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_bytes(&out, &reference);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    assert_eq!(v["order"], "local");
+}

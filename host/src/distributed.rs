@@ -41,6 +41,8 @@ pub struct ClusterRenderConfig {
     pub cache_percent: f64,
     pub subscreens: Option<u32>,
     pub adaptive: bool,
+    /// Which subscreen a render node asking for work gets.
+    pub order: schedule::Order,
     pub render_threads: u32,
 }
 
@@ -115,6 +117,7 @@ pub struct ClusterStats {
     pub subscreens: u32,
     pub subscreens_split: u32,
     pub adaptive: bool,
+    pub order: schedule::Order,
     pub link_model: String,
     pub time_scale: f64,
     pub totals: NodeStats,
@@ -599,6 +602,7 @@ impl Rendering {
                 subscreens: plan.subscreens.clone(),
                 render_nodes: plan.render_nodes.clone(),
                 adaptive: config.adaptive,
+                order: config.order,
             },
             &finished,
             now,
@@ -957,6 +961,7 @@ fn cluster_stats(
         subscreens: done.subscreens,
         subscreens_split: done.subscreens_split,
         adaptive: config.adaptive,
+        order: config.order,
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,

@@ -110,6 +110,43 @@ impl fmt::Display for StallReport {
     }
 }
 
+/// Which queued subscreen a render node asking for work gets.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Order {
+    /// The paper's: the next in line, whoever asks.
+    #[default]
+    Plain,
+    /// Near the node's last subscreen, so that its cache already holds much of what the
+    /// next one needs; each node's first pick spread over the image. Rows taken back from a
+    /// lost node still go first.
+    Local,
+}
+
+impl std::str::FromStr for Order {
+    type Err = UnknownOrder;
+    fn from_str(s: &str) -> Result<Order, UnknownOrder> {
+        match s {
+            "plain" => Ok(Order::Plain),
+            "local" => Ok(Order::Local),
+            _ => Err(UnknownOrder(s.to_string())),
+        }
+    }
+}
+
+impl std::fmt::Display for Order {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Order::Plain => "plain",
+            Order::Local => "local",
+        })
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("unknown subscreen order {0:?} (plain or local)")]
+pub struct UnknownOrder(String);
+
 /// What the scheduler starts from.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -120,6 +157,7 @@ pub struct Plan {
     pub render_nodes: Vec<NodeId>,
     /// Adaptive redivision: a node that would wait makes the busiest give back half.
     pub adaptive: bool,
+    pub order: Order,
 }
 
 /// Which pixels of the image have arrived. The pixels themselves stay with the caller: the
@@ -212,6 +250,9 @@ struct Subscreen {
     giving_back: bool,
     /// When its node said it had sent every row.
     finished_at: Option<Instant>,
+    /// Queued again after its node was lost or its rows went missing: first in line in
+    /// every order.
+    again: bool,
 }
 
 impl Subscreen {
@@ -222,6 +263,7 @@ impl Subscreen {
             pixels_seen: false,
             giving_back: false,
             finished_at: None,
+            again: false,
         }
     }
 }
@@ -233,7 +275,12 @@ impl Subscreen {
 #[derive(Debug)]
 pub struct Scheduler {
     adaptive: bool,
+    order: Order,
     render_nodes: HashSet<NodeId>,
+    /// The render nodes in id order: where each one's first pick falls in `Order::Local`.
+    node_order: Vec<NodeId>,
+    /// Each node's last subscreen, for `Order::Local`.
+    last_rect: HashMap<NodeId, Rect>,
     lost: HashSet<NodeId>,
     subscreens: Vec<Subscreen>,
     planned: u32,
@@ -286,8 +333,14 @@ impl Scheduler {
             subscreens.push(Subscreen::new(rect));
             queue.push_back(subscreens.len() as u32 - 1);
         }
+        let mut node_order = plan.render_nodes.clone();
+        node_order.sort_unstable();
+        node_order.dedup();
         Scheduler {
             adaptive: plan.adaptive,
+            order: plan.order,
+            node_order,
+            last_rect: HashMap::new(),
             render_nodes: plan.render_nodes.into_iter().collect(),
             lost: HashSet::new(),
             subscreens,
@@ -535,17 +588,52 @@ impl Scheduler {
             s.pixels_seen = false;
             s.finished_at = None;
             s.giving_back = false;
+            s.again = false;
+            self.last_rect.insert(request.node, s.rect);
             let answer = Answer::Subscreen { id, rect: s.rect };
             self.answered.insert(request, answer);
             actions.push(Action::Answer { request, answer });
         }
     }
 
-    /// Which queued subscreen `node` gets, as a place in the (non-empty) queue: the first in
-    /// line. The one place where a smarter choice would go (the subscreen whose data the
-    /// node's cache already holds, or one to fetch ahead for).
-    fn choose(&self, _node: NodeId) -> usize {
-        0
+    /// Which queued subscreen `node` gets, as a place in the (non-empty) queue. The one
+    /// place where the choice is made (a later one could weigh what the node's cache holds,
+    /// or fetch ahead for).
+    fn choose(&self, node: NodeId) -> usize {
+        if self.order == Order::Plain {
+            return 0;
+        }
+        // Work taken back from a lost node is what the frame waits for: it goes first.
+        if let Some(at) = self
+            .queue
+            .iter()
+            .position(|&id| self.subscreens[id as usize].again)
+        {
+            return at;
+        }
+        let center = |r: Rect| {
+            (
+                2 * r.x as i64 + r.width as i64,
+                2 * r.y as i64 + r.height as i64,
+            )
+        };
+        match self.last_rect.get(&node) {
+            Some(&last) => {
+                let (cx, cy) = center(last);
+                let distance = |id: u32| {
+                    let (x, y) = center(self.subscreens[id as usize].rect);
+                    (x - cx).pow(2) + (y - cy).pow(2)
+                };
+                // The nearest; of equals, the first in line.
+                (0..self.queue.len())
+                    .min_by_key(|&at| (distance(self.queue[at]), at))
+                    .unwrap_or(0)
+            }
+            None => {
+                let k = self.node_order.iter().position(|&n| n == node).unwrap_or(0);
+                k * self.queue.len() / self.node_order.len().max(1)
+            }
+        }
     }
 
     /// Puts the rows of subscreen `id` that still miss pixels back in the queue, first in
@@ -555,11 +643,17 @@ impl Scheduler {
         let Some((first, rest)) = runs.split_first() else {
             return;
         };
-        self.subscreens[id] = Subscreen::new(*first);
+        self.subscreens[id] = Subscreen {
+            again: true,
+            ..Subscreen::new(*first)
+        };
         self.queue.retain(|&q| q as usize != id);
         self.queue.push_front(id as u32);
         for r in rest {
-            self.subscreens.push(Subscreen::new(*r));
+            self.subscreens.push(Subscreen {
+                again: true,
+                ..Subscreen::new(*r)
+            });
             self.queue.push_front(self.subscreens.len() as u32 - 1);
         }
     }
@@ -622,6 +716,7 @@ mod tests {
             subscreens,
             render_nodes: vec![A, B],
             adaptive,
+            order: Order::Plain,
         }
     }
 
@@ -1102,5 +1197,73 @@ mod tests {
         assert_eq!(s.planned(), 3);
         let fresh = Scheduler::new(plan(2, &[2, 6, 1], false), clock.at(0));
         assert_eq!(fresh.queue, VecDeque::from([0, 1, 2]));
+    }
+
+    /// A 4x4 grid of 2x2 subscreens in scan-line order, for nodes A and B, in local order.
+    fn grid_plan() -> Plan {
+        let subscreens = (0..4)
+            .flat_map(|gy| (0..4).map(move |gx| rect(2 * gx, 2 * gy, 2, 2)))
+            .collect();
+        Plan {
+            width: 8,
+            height: 8,
+            subscreens,
+            render_nodes: vec![B, A],
+            adaptive: false,
+            order: Order::Local,
+        }
+    }
+
+    fn subscreen_of(actions: &[Action]) -> u32 {
+        match actions {
+            [
+                Action::Answer {
+                    answer: Answer::Subscreen { id, .. },
+                    ..
+                },
+            ] => *id,
+            other => panic!("not one subscreen handed out: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn in_local_order_first_picks_spread_and_later_ones_stay_near() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(grid_plan(), clock.at(0));
+        // A (the lower id) starts at the top, B half-way down the queue.
+        assert_eq!(subscreen_of(&s.request(ask(A, 1), None, clock.at(1))), 0);
+        let b_first = subscreen_of(&s.request(ask(B, 1), None, clock.at(2)));
+        assert_eq!(b_first, 8, "half of the 15 left, from the top");
+        // Each then takes a neighbour of its last, of equally near ones the first in line:
+        // A the one to its right, B the one above (before those right of and below it).
+        assert_eq!(subscreen_of(&s.request(ask(A, 2), Some(0), clock.at(3))), 1);
+        assert_eq!(subscreen_of(&s.request(ask(B, 2), Some(8), clock.at(4))), 4);
+        assert_eq!(subscreen_of(&s.request(ask(A, 3), Some(1), clock.at(5))), 2);
+        assert_eq!(subscreen_of(&s.request(ask(B, 3), Some(4), clock.at(6))), 5);
+    }
+
+    #[test]
+    fn in_local_order_rows_of_a_lost_node_still_go_first() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(grid_plan(), clock.at(0));
+        assert_eq!(subscreen_of(&s.request(ask(A, 1), None, clock.at(1))), 0);
+        assert_eq!(subscreen_of(&s.request(ask(B, 1), None, clock.at(2))), 8);
+        s.node_lost(A);
+        // Subscreen 0 is far from B's last (8), yet it is what the frame waits for.
+        assert_eq!(subscreen_of(&s.request(ask(B, 2), Some(8), clock.at(3))), 0);
+        assert_eq!(subscreen_of(&s.request(ask(B, 3), Some(0), clock.at(4))), 1);
+    }
+
+    #[test]
+    fn orders_are_named_plain_and_local() {
+        assert_eq!("local".parse::<Order>().unwrap(), Order::Local);
+        assert_eq!(Order::Plain.to_string(), "plain");
+        assert!(
+            "nearest"
+                .parse::<Order>()
+                .unwrap_err()
+                .to_string()
+                .contains("plain or local")
+        );
     }
 }

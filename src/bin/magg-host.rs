@@ -308,6 +308,10 @@ struct RenderArgs {
     /// Adaptive redivision: idle nodes get the unbegun half of a busy node's subscreen.
     #[arg(long)]
     adaptive: bool,
+    /// Which subscreen a render node asking for work gets: plain (the paper's: next in line)
+    /// or local (near its last one, so its cache holds what it needs).
+    #[arg(long, default_value = "plain")]
+    order: host::schedule::Order,
     /// Delay model of the links: none, or paper (the transputer's measured timings).
     #[arg(long, default_value = "none")]
     link_model: fabric::model::LinkModelKind,
@@ -514,6 +518,7 @@ fn render(args: RenderArgs) -> Result<()> {
             cache_percent: args.cache,
             subscreens: args.subscreens,
             adaptive: args.adaptive,
+            order: args.order,
             render_threads: args.render_threads.max(1),
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
