@@ -49,8 +49,16 @@ pub struct CheckpointKey {
 
 /// SHA-256 of a scene description, in hex: what a checkpoint's scene is known by.
 pub fn scene_digest(desc: &SceneDesc) -> String {
-    let digest = Sha256::digest(protocol::encode_value(desc));
-    digest.iter().map(|b| format!("{b:02x}")).collect()
+    digest_of_encoded(&protocol::encode_value(desc))
+}
+
+/// [`scene_digest`] of a description already encoded with `protocol::encode_value` (as the
+/// cluster render does to send it), so that it is not encoded twice.
+pub fn digest_of_encoded(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 impl CheckpointKey {

@@ -315,8 +315,7 @@ async fn drive(
         started: t0,
         lost: Vec::new(),
     };
-    let scene_sha256 = checkpoint::scene_digest(&desc);
-    upload_scene(&f, desc, rc.prepare.chunk_triangles as u32)?;
+    let scene_sha256 = upload_scene(&f, desc, rc.prepare.chunk_triangles as u32)?;
     let scene = await_header(cluster, cancel, &mut faults).await?;
     let load_s = t0.elapsed().as_secs_f64();
     let plan = plan_job(config, &scene, f.topology().render_nodes())?;
@@ -381,15 +380,17 @@ async fn drive(
     Ok(stats)
 }
 
-/// Sends the scene to the first fork node, in parts that fit a frame.
+/// Sends the scene to the first fork node, in parts that fit a frame; returns the scene's
+/// digest for the checkpoint, taken from the same encoding.
 fn upload_scene(
     f: &fabric::Fabric,
     desc: renderer::SceneDesc,
     chunk_triangles: u32,
-) -> Result<(), ClusterRenderError> {
+) -> Result<String, ClusterRenderError> {
     let master = f.topology().master_fork();
     let bytes = encode_value(&desc);
     drop(desc);
+    let digest = checkpoint::digest_of_encoded(&bytes);
     const PART: usize = 16 << 20;
     let parts = bytes.len().div_ceil(PART).max(1) as u32;
     for (i, part) in bytes.chunks(PART).enumerate() {
@@ -406,7 +407,7 @@ fn upload_scene(
                 source,
             })?;
     }
-    Ok(())
+    Ok(digest)
 }
 
 /// Waits for the prepared scene's header from the first fork node.
@@ -480,16 +481,7 @@ fn plan_job(
     render_nodes: Vec<NodeId>,
 ) -> Result<JobPlan, ClusterRenderError> {
     let rc = &config.render;
-    let mut settings = rc.settings.clone();
-    let aspect = settings.width as f32 / settings.height as f32;
-    let camera = scene
-        .camera(rc.camera.as_deref(), aspect)
-        .map_err(|e| RenderError::Settings(e.to_string()))?;
-    if !rc.height_given
-        && let Some(a) = camera.aspect_ratio
-    {
-        settings.height = ((settings.width as f32 / a).round() as u32).clamp(1, 32768);
-    }
+    let (settings, camera) = crate::inprocess::camera_and_settings(rc, scene)?;
     let data_bytes =
         scene.shape_bytes + scene.tile_count as u64 * renderer::texture::TILE_TEXELS as u64 * 4;
     let cache_bytes = (config.cache_percent / 100.0 * data_bytes as f64).ceil() as u64;
@@ -795,16 +787,19 @@ impl Rendering {
     fn store(&mut self, run: &Run<'_>, x: u32, y: u32, width: u32) {
         let pixels: &[[f32; 3]] = bytemuck::cast_slice(run.data);
         let from = (x - run.x) as usize;
-        let at = (y * self.kept.image.width + x) as usize;
         debug_assert_eq!(y, run.y);
-        self.kept.image.pixels[at..at + width as usize]
-            .copy_from_slice(&pixels[from..from + width as usize]);
-        // The scheduler stores each pixel once, so a line is finished when its count is out.
-        let left = &mut self.pending[y as usize];
-        *left = left.saturating_sub(width);
-        if *left == 0 {
-            self.kept.rows_done[y as usize] = true;
-        }
+        // The scheduler stores each pixel once, so a line's count of pixels left is exact.
+        let rect = Rect {
+            x,
+            y,
+            width,
+            height: 1,
+        };
+        self.kept.put_rect(
+            rect,
+            &pixels[from..from + width as usize],
+            &mut self.pending,
+        );
     }
 
     /// The frame is complete: everyone still asking is told there is nothing more.

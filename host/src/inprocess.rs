@@ -187,14 +187,12 @@ struct Prepared {
     triangles: u64,
 }
 
-fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
-    let (desc, warnings) = read_scene(&config.scene, config.environment)?;
-    for w in &warnings {
-        tracing::warn!("{}: {w}", config.scene);
-    }
-    let scene_sha256 = checkpoint::scene_digest(&desc);
-    let (scene, data) = renderer::prepare(desc, &config.prepare);
-    let triangles = scene.triangle_count();
+/// The camera the render looks through, and the settings with the height the camera's
+/// aspect ratio gives when none was asked for: the same in one process and on a cluster.
+pub(crate) fn camera_and_settings(
+    config: &RenderConfig,
+    scene: &renderer::SceneHeader,
+) -> Result<(RenderSettings, renderer::Camera), RenderError> {
     let mut settings = config.settings.clone();
     let aspect = settings.width as f32 / settings.height as f32;
     let camera = scene
@@ -205,6 +203,18 @@ fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
     {
         settings.height = ((settings.width as f32 / a).round() as u32).clamp(1, 32768);
     }
+    Ok((settings, camera))
+}
+
+fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
+    let (desc, warnings) = read_scene(&config.scene, config.environment)?;
+    for w in &warnings {
+        tracing::warn!("{}: {w}", config.scene);
+    }
+    let scene_sha256 = checkpoint::scene_digest(&desc);
+    let (scene, data) = renderer::prepare(desc, &config.prepare);
+    let triangles = scene.triangle_count();
+    let (settings, camera) = camera_and_settings(config, &scene)?;
     let key = CheckpointKey::new(scene_sha256, &config.prepare, &settings, &camera);
     Ok(Prepared {
         scene,
