@@ -1,26 +1,35 @@
 #!/usr/bin/env bash
-# Builds the magg image offline: static binaries (glibc, +crt-static, so they run and
-# resolve host names in an image holding nothing else), then `FROM scratch`.
+# Builds the magg image offline, from nothing (no base image to pull): a root filesystem made
+# here from the release binaries, the very files `cargo build --release` leaves in target/
+# (so a render's build identity is the same inside and outside containers, and the image
+# costs no second build), and the few shared libraries they load, copied from this machine
+# at the paths its dynamic loader looks in. glibc 2.34+ resolves host names inside libc
+# itself (files and DNS), so nothing else is needed for compose's service names.
 # Also makes what docker-compose.yml mounts when it is missing: deploy/secrets/magg_secret
 # (a fresh random secret) and deploy/input, deploy/out.
 #   deploy/build-images.sh [TAG]     (default magg:latest)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tag="${1:-magg:latest}"
-target=x86_64-unknown-linux-gnu
+binaries=(magg-host magg-fork-node magg-render-node)
 
-# RUSTFLAGS replaces .cargo/config.toml's flags, so the instruction set is named again here:
-# the image's binaries must be the same build as binaries built with the config.
-RUSTFLAGS="-C target-feature=+crt-static -C target-cpu=x86-64-v3" \
-    cargo build --release --locked --target "$target" \
-    --bin magg-host --bin magg-fork-node --bin magg-render-node
+cargo build --release --locked "${binaries[@]/#/--bin=}"
 
 context="$(mktemp -d)"
 trap 'rm -rf "$context"' EXIT
 cp deploy/Dockerfile "$context"/
-for b in magg-host magg-fork-node magg-render-node; do
-    cp "${CARGO_TARGET_DIR:-target}/$target/release/$b" "$context"/
-    strip "$context/$b" 2>/dev/null || true
+rootfs="$context/rootfs"
+mkdir -p "$rootfs/bin"
+for b in "${binaries[@]}"; do
+    cp "${CARGO_TARGET_DIR:-target}/release/$b" "$rootfs/bin/"
+    strip "$rootfs/bin/$b" 2>/dev/null || true
+done
+# Every library the binaries load, and the loader itself, at the path the binaries name:
+# `ldd` prints "name => /path (addr)" for libraries and "/path (addr)" for the loader.
+libraries=$(ldd "${binaries[@]/#/$rootfs/bin/}" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// && $1 !~ /:$/ {print $1}' | sort -u)
+for lib in $libraries; do
+    mkdir -p "$rootfs$(dirname "$lib")"
+    cp -L "$lib" "$rootfs$lib"
 done
 docker build --quiet -t "$tag" "$context" >/dev/null
 echo "built $tag: $(docker image inspect "$tag" --format '{{.Size}}' | awk '{printf "%.1f MB", $1/1e6}')"

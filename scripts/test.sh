@@ -13,7 +13,7 @@ cargo test --workspace --release --locked
 
 # The container deployment needs a Docker daemon; without one it is skipped, and says so.
 if docker info >/dev/null 2>&1; then
-    cargo test --release --test docker -- --ignored --test-threads=1
+    cargo test --workspace --release --locked --test docker -- --ignored --test-threads=1
 else
     echo "SKIPPED: tests/docker.rs (no Docker daemon answers 'docker info')"
 fi
