@@ -147,6 +147,37 @@ fn experiment_overhead_runs_both_renders_and_compares_bytes() {
     assert_eq!(stats["processes"], 6);
 }
 
+/// `experiment load-balance` on the smallest cluster: static division gives one subscreen
+/// per render node, the three runs give the same bytes, and the CSV, chart and report exist.
+#[test]
+fn experiment_load_balance_writes_times_per_render_node() {
+    let dir = scratch("load-balance");
+    let scene = data().join("scenes/cornell/cornell.gltf");
+    let o = run(host()
+        .args(["experiment", "load-balance", "--subscreens", "12", "--out"])
+        .arg(&dir)
+        .args(["--cluster", "--spawn tiny", "--"])
+        .arg(&scene)
+        .args(["--width", "24", "--height", "16", "--spp", "2"]));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        table.contains("| static | 4 |"),
+        "tiny has 4 render nodes: {table}"
+    );
+    assert!(table.contains("| dynamic | 12 |"), "{table}");
+    assert!(
+        !table.contains("NO"),
+        "every run must give the same image: {table}"
+    );
+    for f in ["load-balance.csv", "load-balance.png", "report.md"] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    let csv = std::fs::read_to_string(dir.join("load-balance.csv")).unwrap();
+    // A header and 4 render nodes for each of the 3 runs.
+    assert_eq!(csv.lines().count(), 1 + 3 * 4, "{csv}");
+}
+
 /// `experiment links` on the smallest cluster: every table and plot is written, and the
 /// measured one-packet times exist for the distances the card has.
 #[test]

@@ -4,6 +4,7 @@
 //! fork node and render node libraries carry only what a cluster needs; it uses them the
 //! way a user would (whole renders, real clusters, the render node's cache).
 
+pub mod balance;
 pub mod bench;
 pub mod compare;
 pub mod experiment;
@@ -29,6 +30,8 @@ pub enum LabError {
     /// The plotting library's own error, as it words it (its types are generic per backend).
     #[error("drawing: {0}")]
     Draw(String),
+    #[error(transparent)]
+    Run(#[from] runs::RunError),
     #[error("nothing to plot")]
     NothingToPlot,
     #[error("{path}: {source}")]

@@ -51,6 +51,18 @@ enum ExperimentCmd {
     Overhead(RunArgs),
     /// Bytes fetched, hit rate and time for several shape-cache sizes (paper link model).
     Cache(CacheArgs),
+    /// Figure 1.10: busy, waiting and idle time per render node with one subscreen per node
+    /// (static), many handed out on request (dynamic), and with adaptive redivision.
+    LoadBalance(BalanceArgs),
+}
+
+#[derive(Args)]
+struct BalanceArgs {
+    #[command(flatten)]
+    run: RunArgs,
+    /// Subscreens of the dynamic and adaptive runs.
+    #[arg(long, default_value_t = 640)]
+    subscreens: u32,
 }
 
 /// Render arguments passed through to every run, e.g. `-- SCENE --spp 16`.
@@ -862,6 +874,26 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             )?;
             println!("{}", lab::runs::cache_table(&rows));
             println!("wrote {}/cache.csv", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::LoadBalance(a) => {
+            let dir = a
+                .run
+                .out
+                .unwrap_or_else(|| lab::runs::out_dir("load-balance"));
+            let cluster: Vec<String> = a.run.cluster.split_whitespace().map(String::from).collect();
+            // The small default: the demo scene, small enough for a few minutes on 2 cores.
+            let render = if a.run.render.is_empty() {
+                ["--width", "160", "--height", "120", "--spp", "16"]
+                    .map(String::from)
+                    .to_vec()
+            } else {
+                a.run.render
+            };
+            let r =
+                lab::balance::load_balance(&own_program()?, &render, &cluster, a.subscreens, &dir)?;
+            println!("{}", lab::balance::table(&r));
+            println!("wrote {}/report.md", dir.display());
             Ok(())
         }
         ExperimentCmd::Links(args) => {
