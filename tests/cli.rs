@@ -178,6 +178,34 @@ fn experiment_load_balance_writes_times_per_render_node() {
     assert_eq!(csv.lines().count(), 1 + 3 * 4, "{csv}");
 }
 
+/// `experiment error` renders the Cornell box at 1, 2 and 4 spp against the repository's
+/// reference: the error falls as samples double, and the CSV, plot and report exist.
+#[test]
+fn experiment_error_measures_falling_error_against_the_reference() {
+    let dir = scratch("error");
+    let o = run(host()
+        .args(["experiment", "error", "--max-spp", "4", "--scene"])
+        .arg(data().join("scenes/cornell/cornell.gltf"))
+        .arg("--reference")
+        .arg(data().join("references/cornell/cornell_ref.exr"))
+        .arg("--peers")
+        .arg(dir.join("none.json"))
+        .arg("--out")
+        .arg(&dir));
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in ["error.csv", "error.png", "report.md"] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    let csv = std::fs::read_to_string(dir.join("error.csv")).unwrap();
+    let errors: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.rsplit(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(errors.len(), 3, "{csv}");
+    assert!(errors[0] > errors[1] && errors[1] > errors[2], "{csv}");
+}
+
 /// `experiment links` on the smallest cluster: every table and plot is written, and the
 /// measured one-packet times exist for the distances the card has.
 #[test]

@@ -7,6 +7,7 @@
 pub mod balance;
 pub mod bench;
 pub mod compare;
+pub mod convergence;
 pub mod experiment;
 pub mod gallery;
 pub mod plot;
@@ -32,6 +33,11 @@ pub enum LabError {
     Draw(String),
     #[error(transparent)]
     Run(#[from] runs::RunError),
+    #[error("{} against the reference: {source}", path.display())]
+    Compare {
+        path: std::path::PathBuf,
+        source: compare::SizeMismatch,
+    },
     #[error("nothing to plot")]
     NothingToPlot,
     #[error("{path}: {source}")]

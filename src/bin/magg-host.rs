@@ -54,6 +54,37 @@ enum ExperimentCmd {
     /// Figure 1.10: busy, waiting and idle time per render node with one subscreen per node
     /// (static), many handed out on request (dynamic), and with adaptive redivision.
     LoadBalance(BalanceArgs),
+    /// Run time against error: relMSE against a reference at 1, 2, 4 ... spp, with the peer
+    /// renderers' curves from bench/peers when they were run.
+    #[command(name = "error")]
+    Convergence(ErrorArgs),
+}
+
+#[derive(Args)]
+struct ErrorArgs {
+    /// Folder for the images, stats, CSV, plot and report.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
+    scene: PathBuf,
+    #[arg(long, default_value = "tests/data/references/cornell/cornell_ref.exr")]
+    reference: PathBuf,
+    #[arg(long, default_value_t = 256)]
+    width: u32,
+    #[arg(long, default_value_t = 256)]
+    height: u32,
+    /// Largest sample count of the sweep (doubling from 1).
+    #[arg(long, default_value_t = 256)]
+    max_spp: u32,
+    /// The full sweep, to 4096 spp (about 8 minutes on 2 cores).
+    #[arg(long)]
+    full: bool,
+    /// Results of bench/peers/mitsuba.py to plot beside magg's, when the file exists.
+    #[arg(long, default_value = "bench/peers/out/mitsuba-results.json")]
+    peers: PathBuf,
+    /// Further render flags for magg's runs.
+    #[arg(last = true)]
+    render: Vec<String>,
 }
 
 #[derive(Args)]
@@ -893,6 +924,22 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             let r =
                 lab::balance::load_balance(&own_program()?, &render, &cluster, a.subscreens, &dir)?;
             println!("{}", lab::balance::table(&r));
+            println!("wrote {}/report.md", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::Convergence(a) => {
+            let dir = a.out.unwrap_or_else(|| lab::runs::out_dir("error"));
+            let config = lab::convergence::ErrorConfig {
+                scene: a.scene,
+                reference: a.reference,
+                width: a.width,
+                height: a.height,
+                max_spp: if a.full { 4096 } else { a.max_spp },
+                render_args: a.render,
+                peers: Some(a.peers),
+            };
+            let r = lab::convergence::error_sweep(&own_program()?, &config, &dir)?;
+            println!("{}", lab::convergence::table(&r));
             println!("wrote {}/report.md", dir.display());
             Ok(())
         }

@@ -1,0 +1,303 @@
+//! `experiment error`: run time against error, the measure of a renderer that the brief asks
+//! for ("fast and accurate: benchmark run time against error"). One scene is rendered at
+//! 1, 2, 4 ... samples per pixel, each a whole `magg-host render --in-process` as a user waits
+//! for it; each image's relative mean squared error against a reference gives one point of a
+//! log-log curve. Curves of other renderers join it from `bench/peers/`' results when those
+//! were run (Mitsuba 3's `mitsuba-results.json`); the time each needs to reach relMSE 1e-2
+//! and 1e-3 is read off the curves by log-log interpolation.
+
+use std::{
+    io::Write,
+    path::{Path, PathBuf},
+};
+
+use serde::Serialize;
+
+use crate::runs::render_run;
+
+/// One render of the sweep (or one peer's point).
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorPoint {
+    pub spp: u32,
+    pub wall_s: f64,
+    pub render_s: f64,
+    pub rel_mse: f64,
+}
+
+/// A renderer's curve.
+#[derive(Clone, Debug, Serialize)]
+pub struct Curve {
+    pub name: String,
+    pub points: Vec<ErrorPoint>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ErrorReport {
+    pub scene: PathBuf,
+    pub reference: PathBuf,
+    pub curves: Vec<Curve>,
+    /// Per curve: wall seconds to relMSE 1e-2 and 1e-3 (None when the curve cannot say).
+    pub time_to: Vec<(String, Option<f64>, Option<f64>)>,
+}
+
+/// What the sweep renders.
+pub struct ErrorConfig {
+    pub scene: PathBuf,
+    pub reference: PathBuf,
+    pub width: u32,
+    pub height: u32,
+    pub max_spp: u32,
+    /// Extra render flags (threads, integrator...).
+    pub render_args: Vec<String>,
+    /// A `mitsuba-results.json` of `bench/peers/mitsuba.py`, when present.
+    pub peers: Option<PathBuf>,
+}
+
+/// Seconds to reach `target` relMSE: log(time) interpolated linearly in log(relMSE) between
+/// the two consecutive points that bracket it; None when no two points do (no extrapolation:
+/// a figure read off the curve must lie on it).
+pub fn time_to_reach(points: &[(f64, f64)], target: f64) -> Option<f64> {
+    let pts: Vec<(f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|&(t, e)| t > 0.0 && e > 0.0 && t.is_finite() && e.is_finite())
+        .collect();
+    pts.windows(2).find_map(|w| {
+        let ((t0, e0), (t1, e1)) = (w[0], w[1]);
+        if e0 == e1 || target < e0.min(e1) || target > e0.max(e1) {
+            return None;
+        }
+        let f = (target.ln() - e0.ln()) / (e1.ln() - e0.ln());
+        Some((t0.ln() + f * (t1.ln() - t0.ln())).exp())
+    })
+}
+
+/// Renders the sweep, reads the peers' curves, writes `error.csv`, `error.png`, `report.md`.
+pub fn error_sweep(
+    program: &Path,
+    config: &ErrorConfig,
+    dir: &Path,
+) -> Result<ErrorReport, crate::LabError> {
+    let folder = |source| crate::LabError::Folder {
+        path: dir.to_path_buf(),
+        source,
+    };
+    std::fs::create_dir_all(dir).map_err(folder)?;
+    let reference = scene_io::image_io::read_image(&config.reference)?;
+    if (reference.width, reference.height) != (config.width, config.height) {
+        return Err(crate::LabError::Compare {
+            path: config.reference.clone(),
+            source: crate::compare::SizeMismatch(
+                config.width,
+                config.height,
+                reference.width,
+                reference.height,
+            ),
+        });
+    }
+    let mut points = Vec::new();
+    let mut spp = 1;
+    while spp <= config.max_spp {
+        let out = dir.join(format!("magg-{spp}.pfm"));
+        let args: Vec<String> = [
+            config.scene.display().to_string(),
+            "--in-process".into(),
+            "--width".into(),
+            config.width.to_string(),
+            "--height".into(),
+            config.height.to_string(),
+            "--spp".into(),
+            spp.to_string(),
+        ]
+        .into_iter()
+        .chain(config.render_args.iter().cloned())
+        .collect();
+        tracing::info!("error: {spp} spp");
+        let stats = render_run(program, &args, &out, &dir.join(format!("magg-{spp}.json")))?;
+        let image = scene_io::image_io::read_image(&out)?;
+        let c = crate::compare::compare(&image, &reference).map_err(|source| {
+            crate::LabError::Compare {
+                path: out.clone(),
+                source,
+            }
+        })?;
+        points.push(ErrorPoint {
+            spp,
+            wall_s: stats["seconds"]["total"].as_f64().unwrap_or(f64::NAN),
+            render_s: stats["seconds"]["render"].as_f64().unwrap_or(f64::NAN),
+            rel_mse: c.rel_mse,
+        });
+        spp *= 2;
+    }
+    let mut curves = vec![Curve {
+        name: "magg (in-process)".into(),
+        points,
+    }];
+    if let Some(peers) = config.peers.as_deref().filter(|p| p.is_file()) {
+        curves.extend(peer_curves(peers)?);
+    }
+    let time_to = curves
+        .iter()
+        .map(|c| {
+            let pts: Vec<(f64, f64)> = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
+            (
+                c.name.clone(),
+                time_to_reach(&pts, 1e-2),
+                time_to_reach(&pts, 1e-3),
+            )
+        })
+        .collect();
+    let report = ErrorReport {
+        scene: config.scene.clone(),
+        reference: config.reference.clone(),
+        curves,
+        time_to,
+    };
+    let mut f = std::fs::File::create(dir.join("error.csv")).map_err(folder)?;
+    writeln!(f, "renderer,spp,wall_s,render_s,rel_mse").map_err(folder)?;
+    for c in &report.curves {
+        for p in &c.points {
+            writeln!(
+                f,
+                "{},{},{:.4},{:.4},{:.6e}",
+                c.name, p.spp, p.wall_s, p.render_s, p.rel_mse
+            )
+            .map_err(folder)?;
+        }
+    }
+    let series: Vec<(String, Vec<(f64, f64)>)> = report
+        .curves
+        .iter()
+        .map(|c| {
+            let pts = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
+            (c.name.clone(), pts)
+        })
+        .collect();
+    crate::plot::log_log_png(
+        &dir.join("error.png"),
+        "relMSE against wall time (whole command)",
+        "wall time (s)",
+        "relMSE",
+        &series,
+    )?;
+    scene_io::image_io::write_atomic(&dir.join("report.md"), report_md(&report).as_bytes())?;
+    Ok(report)
+}
+
+/// The peers' rows of `bench/peers/mitsuba.py`'s results, a curve per renderer and variant.
+fn peer_curves(path: &Path) -> Result<Vec<Curve>, crate::LabError> {
+    let text = std::fs::read(path).map_err(|source| crate::LabError::Folder {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let v: serde_json::Value = serde_json::from_slice(&text)
+        .map_err(|e| crate::LabError::Draw(format!("{}: {e}", path.display())))?;
+    let mut curves: Vec<Curve> = Vec::new();
+    for r in v["runs"].as_array().into_iter().flatten() {
+        let renderer = r["renderer"].as_str().unwrap_or("?");
+        if renderer == "magg" {
+            continue;
+        }
+        let name = format!("{renderer} {}", r["variant"].as_str().unwrap_or(""));
+        let point = ErrorPoint {
+            spp: r["spp"].as_u64().unwrap_or(0) as u32,
+            wall_s: r["wall_s"].as_f64().unwrap_or(f64::NAN),
+            render_s: r["render_s"].as_f64().unwrap_or(f64::NAN),
+            rel_mse: r["rel_mse"].as_f64().unwrap_or(f64::NAN),
+        };
+        match curves.iter_mut().find(|c| c.name == name) {
+            Some(c) => c.points.push(point),
+            None => curves.push(Curve {
+                name,
+                points: vec![point],
+            }),
+        }
+    }
+    for c in &mut curves {
+        c.points.sort_by_key(|p| p.spp);
+    }
+    Ok(curves)
+}
+
+/// The table of time to each error, with ratios to magg's.
+pub fn table(r: &ErrorReport) -> String {
+    let f = |t: Option<f64>| t.map_or("-".to_string(), |t| format!("{t:.2}"));
+    let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) => format!("{:.2}", a / b),
+        _ => "-".into(),
+    };
+    let (_, m2, m3) = r.time_to[0].clone();
+    let mut s = String::from(
+        "| renderer | s to relMSE 1e-2 | s to relMSE 1e-3 | magg / it at 1e-2 | magg / it at 1e-3 |\n\
+         |---|---:|---:|---:|---:|\n",
+    );
+    for (name, t2, t3) in &r.time_to {
+        s.push_str(&format!(
+            "| {name} | {} | {} | {} | {} |\n",
+            f(*t2),
+            f(*t3),
+            ratio(m2, *t2),
+            ratio(m3, *t3)
+        ));
+    }
+    s
+}
+
+fn report_md(r: &ErrorReport) -> String {
+    let peers = if r.curves.len() > 1 {
+        "Peer curves come from `bench/peers/mitsuba.py` (its own run, same machine).".to_string()
+    } else {
+        "No peer results were found (run `python3 bench/peers/mitsuba.py` first to add \
+         Mitsuba 3's curves)."
+            .to_string()
+    };
+    format!(
+        "# Run time against error\n\n\
+         Scene `{}`, reference `{}`. Each point is a whole command (scene loading included); \
+         a dash means the curve does not reach that error (no extrapolation).\n\n\
+         ![relMSE against wall time](error.png)\n\n{}\n{}\n",
+        r.scene.display(),
+        r.reference.display(),
+        table(r),
+        peers
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn time_to_reach_interpolates_on_log_log_axes_and_never_extrapolates() {
+        // relMSE proportional to 1/time: 1e-2 at 1 s, 1e-3 at 10 s.
+        let pts = [(1.0, 1e-2), (10.0, 1e-3), (100.0, 1e-4)];
+        assert!((time_to_reach(&pts, 1e-2).unwrap() - 1.0).abs() < 1e-9);
+        let mid = time_to_reach(&pts, 10f64.powf(-2.5)).unwrap();
+        assert!((mid - 10f64.sqrt()).abs() < 1e-9, "{mid}");
+        assert_eq!(time_to_reach(&pts, 1e-5), None);
+        assert_eq!(time_to_reach(&pts, 1e-1), None);
+        assert_eq!(time_to_reach(&[(1.0, 1e-2)], 1e-2), None);
+    }
+
+    #[test]
+    fn peer_rows_become_one_curve_per_variant_without_magg() {
+        let dir = std::env::temp_dir().join(format!("magg-peers-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let json = serde_json::json!({"runs": [
+            {"renderer": "mitsuba", "variant": "llvm_ad_rgb", "spp": 64, "wall_s": 3.0, "render_s": 2.0, "rel_mse": 2e-3},
+            {"renderer": "mitsuba", "variant": "llvm_ad_rgb", "spp": 16, "wall_s": 1.0, "render_s": 0.5, "rel_mse": 1e-2},
+            {"renderer": "mitsuba", "variant": "scalar_rgb", "spp": 16, "wall_s": 2.0, "render_s": 1.5, "rel_mse": 1e-2},
+            {"renderer": "magg", "variant": "in-process", "spp": 16, "wall_s": 1.0, "render_s": 1.0, "rel_mse": 8e-3}
+        ]});
+        let path = dir.join("mitsuba-results.json");
+        std::fs::write(&path, json.to_string()).unwrap();
+        let curves = peer_curves(&path).unwrap();
+        assert_eq!(curves.len(), 2);
+        assert_eq!(curves[0].name, "mitsuba llvm_ad_rgb");
+        assert_eq!(
+            curves[0].points.iter().map(|p| p.spp).collect::<Vec<_>>(),
+            [16, 64]
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
