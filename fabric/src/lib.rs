@@ -8,6 +8,7 @@
 //! * [`registry`]: the decisions of forming a cluster (slots, refusals, completion, timeout), with no I/O.
 //! * [`cluster`]: forming a cluster: registration with the host, addresses, links up.
 //! * [`role`]: the life every node role shares: join, take deliveries, obey the host, leave.
+//! * [`shm`]: a card's memory as a shared-memory segment, published and mapped, checked.
 
 pub mod clock;
 pub mod cluster;
@@ -17,6 +18,7 @@ pub mod node;
 pub mod registry;
 pub mod role;
 pub mod routing;
+pub mod shm;
 pub mod topology;
 
 pub use model::Model;

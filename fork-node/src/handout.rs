@@ -47,13 +47,11 @@ impl ForkNode {
         }
         let Some(header) = header else { return };
         let f = &self.fabric;
-        let card: Vec<NodeId> = f
-            .topology()
-            .render_nodes()
-            .into_iter()
-            .filter(|&r| f.topology().fork_of(r) == Some(f.me()))
-            .collect();
+        let card = self.card_render_nodes();
         if !self.handout.header_sent.swap(true, Ordering::SeqCst) {
+            // Announced before the header, on the same connections, so that a render node
+            // knows the segment before it starts rendering.
+            self.publish_segment(&card);
             let msg = Message::Header {
                 len: header.len() as u64,
                 chunk_owner: table.0,
@@ -71,6 +69,15 @@ impl ForkNode {
             let me = self.clone();
             tokio::spawn(async move { me.send_batch(card).await });
         }
+    }
+
+    /// The render nodes of this fork node's card.
+    pub(crate) fn card_render_nodes(&self) -> Vec<NodeId> {
+        let t = self.fabric.topology();
+        t.render_nodes()
+            .into_iter()
+            .filter(|&r| t.fork_of(r) == Some(self.fabric.me()))
+            .collect()
     }
 
     /// Batch transfer: every render node of the card gets every chunk and tile.

@@ -16,6 +16,8 @@
 //! * `handout`: giving the card's render nodes the header, and for a batch job all data.
 //! * `serving`: demand requests, and the card's DMA bus timing.
 //! * `gbus`: reads from other cards' memories and, on the first fork node, bus arbitration.
+//! * `segment`: the card's memory published as a shared-memory segment for render nodes on
+//!   this machine, and other cards' announcements passed on.
 //!
 //! Pixel rows need no state: they are passed on to the host as they come.
 
@@ -23,6 +25,7 @@ mod assembly;
 mod gbus;
 mod handout;
 mod memory;
+mod segment;
 mod serving;
 
 use std::sync::{Arc, Mutex, atomic::Ordering};
@@ -38,6 +41,7 @@ use assembly::SceneAssembly;
 use gbus::GBus;
 use handout::Handout;
 use memory::SharedMemory;
+use segment::SegmentSlot;
 use serving::Serving;
 
 pub struct Config {
@@ -46,10 +50,15 @@ pub struct Config {
 
 /// Runs a fork node until the host says stop or goes away.
 pub async fn run(config: Config) -> Result<(), RoleError> {
-    run_role(config.join, |fabric| Handler {
-        node: Arc::new(ForkNode::new(fabric.clone())),
+    let segment = SegmentSlot::default();
+    let slot = segment.clone();
+    let ended = run_role(config.join, |fabric| Handler {
+        node: Arc::new(ForkNode::new(fabric.clone(), slot)),
     })
-    .await
+    .await;
+    // The card's segment goes with the fork node; render nodes keep their mappings.
+    drop(segment.lock().expect("segment lock").take());
+    ended
 }
 
 /// A fork node's state, one part per job. It is shared with the tasks that serve requests
@@ -61,11 +70,14 @@ struct ForkNode {
     handout: Handout,
     serving: Serving,
     gbus: GBus,
+    /// This card's memory as a shared-memory segment, once published.
+    segment: SegmentSlot,
 }
 
 impl ForkNode {
-    fn new(fabric: Fabric) -> ForkNode {
+    fn new(fabric: Fabric, segment: SegmentSlot) -> ForkNode {
         ForkNode {
+            segment,
             assembly: Mutex::default(),
             memory: Mutex::default(),
             handout: Handout::default(),
@@ -133,7 +145,21 @@ impl ForkNode {
                 transfer,
                 owner,
             } => {
-                tokio::spawn(async move { self.serve_request(frame, id, transfer, owner).await });
+                tokio::spawn(
+                    async move { self.serve_request(frame, id, transfer, owner, true).await },
+                );
+            }
+            // The render node reads the bytes from a shared segment; it needs only the time.
+            Message::SharedRead { id, owner } => {
+                tokio::spawn(async move {
+                    self.serve_request(frame, id, protocol::Transfer::Dma, owner, false)
+                        .await
+                });
+            }
+            Message::SharedSegment { .. } => {
+                if let Via::Direct(from) = via {
+                    self.relay_segment(from, &msg);
+                }
             }
             Message::RemoteRead { id, .. } => {
                 let data = self.read_local(id);

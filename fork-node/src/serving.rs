@@ -39,13 +39,16 @@ impl Serving {
 }
 
 impl ForkNode {
-    /// Answers a render node's demand request, by DMA or through the mesh.
+    /// Answers a render node's demand request, by DMA or through the mesh. Without
+    /// `payload` (the render node reads the bytes from a shared segment) the reply carries
+    /// no data, but every model time is charged as if it did.
     pub(crate) async fn serve_request(
         &self,
         request: Frame,
         id: DataId,
         transfer: Transfer,
         owner: NodeId,
+        payload: bool,
     ) {
         let f = &self.fabric;
         let ready = now_ns();
@@ -66,6 +69,7 @@ impl ForkNode {
         };
         let bytes = data.len() as u64 * 4;
         self.serving.count_served(bytes);
+        let data = if payload { data } else { Box::default() };
         let result = match transfer {
             Transfer::Dma => {
                 let done = self.serving.dma_done(f.model(), bytes, ready);

@@ -16,8 +16,8 @@ use std::{
 
 use fabric::{Delivery, Via};
 use protocol::{
-    Frame, JobSpec, Message, NodeId, NodeStats, Rect, Role, Transfer, TransferMode, bytes_to_words,
-    decode_value, encode_value, words_to_bytes,
+    DmaTransport, Frame, JobSpec, Message, NodeId, NodeStats, Rect, Role, Transfer, TransferMode,
+    bytes_to_words, decode_value, encode_value, words_to_bytes,
 };
 use renderer::SceneHeader;
 use serde::Serialize;
@@ -37,6 +37,8 @@ pub struct ClusterRenderConfig {
     pub cluster: ClusterConfig,
     pub transfer: TransferMode,
     pub demand_via: Transfer,
+    /// How render nodes' DMA reads really travel: shared memory where it can (auto) or TCP.
+    pub dma_transport: DmaTransport,
     /// Cache budget per render node, as a percentage of the scene's chunk and tile bytes.
     pub cache_percent: f64,
     pub subscreens: Option<u32>,
@@ -112,6 +114,11 @@ pub struct ClusterStats {
     pub topology: String,
     pub processes: usize,
     pub transfer: String,
+    /// The DMA transport asked for (`auto` or `tcp`).
+    pub dma_transport: String,
+    /// Render nodes whose DMA reads went through shared memory (at least one card's
+    /// segment mapped), of all render nodes that reported.
+    pub shared_memory_nodes: usize,
     pub cache_percent: f64,
     pub cache_bytes: u64,
     pub subscreens: u32,
@@ -521,6 +528,7 @@ fn plan_job(
         camera,
         transfer: config.transfer,
         demand_via: config.demand_via,
+        dma_transport: config.dma_transport,
         cache_bytes,
         render_threads: config.render_threads,
     };
@@ -875,6 +883,8 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
         totals.cache_evictions += n.cache_evictions;
         totals.bytes_fetched_dma += n.bytes_fetched_dma;
         totals.bytes_fetched_serial += n.bytes_fetched_serial;
+        totals.bytes_fetched_shared += n.bytes_fetched_shared;
+        totals.shared_segments += n.shared_segments;
         totals.bytes_served += n.bytes_served;
         totals.bytes_gbus += n.bytes_gbus;
         totals.frames_forwarded += n.frames_forwarded;
@@ -951,6 +961,12 @@ fn cluster_stats(
         topology: topo.name.clone(),
         processes: topo.len(),
         transfer: format!("{:?}", config.transfer),
+        dma_transport: config.dma_transport.as_str().into(),
+        shared_memory_nodes: done
+            .nodes
+            .iter()
+            .filter(|n| n.role == Some(Role::Render) && n.shared_segments > 0)
+            .count(),
         cache_percent: config.cache_percent,
         cache_bytes: done.plan.job.cache_bytes,
         subscreens: done.subscreens,

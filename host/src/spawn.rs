@@ -130,6 +130,8 @@ impl LocalCluster {
         for (_, c) in &mut self.children {
             let _ = c.wait();
         }
+        // A fork node killed here could not remove its card's shared-memory segment.
+        fabric::shm::remove_stale(std::path::Path::new(fabric::shm::SHM_DIR));
     }
 
     /// Kills one child (for fault tests); returns its pid.

@@ -34,6 +34,26 @@ pub enum Transfer {
     Dma,
 }
 
+/// How a render node's DMA reads of its card's memory really travel.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DmaTransport {
+    /// Through a shared-memory segment when the card's fork node runs on the same machine
+    /// (and its segment maps and carries the announced nonce), else over TCP.
+    #[default]
+    Auto,
+    /// Always a request and a reply over TCP, as between machines.
+    Tcp,
+}
+
+impl DmaTransport {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DmaTransport::Auto => "auto",
+            DmaTransport::Tcp => "tcp",
+        }
+    }
+}
+
 /// A piece of data a render node can ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum DataId {
@@ -183,6 +203,24 @@ pub enum Message {
     BusGrant {
         done_ns: u64,
     },
+    /// Fork node `card`'s memory is also published as the shared-memory segment `name` (a
+    /// file name in the machine's shared-memory directory), `bytes` long, whose header holds
+    /// `nonce`. A render node that can map it and finds the nonce is on the same machine and
+    /// may read that card's items from it instead of asking for them; any other stays on TCP.
+    SharedSegment {
+        card: NodeId,
+        name: String,
+        nonce: [u32; 4],
+        bytes: u64,
+    },
+    /// A render node reads `id` (held by `owner`'s card) from a shared segment while the
+    /// links are delayed: its fork node books the DMA transfer (and the G-bus read) as for
+    /// a `DataRequest` and answers with a `DataReply` without data at the model time the
+    /// transfer completes.
+    SharedRead {
+        id: DataId,
+        owner: NodeId,
+    },
 
     // Distributed rendering.
     /// Host to the first fork node: part `part` of `parts` of the scene description (bincode
@@ -267,6 +305,8 @@ pub struct JobSpec {
     pub transfer: TransferMode,
     /// How demand fetches travel from the fork node.
     pub demand_via: Transfer,
+    /// How DMA reads really travel (the model's timing is the same either way).
+    pub dma_transport: DmaTransport,
     /// Cache budget of each render node, in bytes of chunks and tiles.
     pub cache_bytes: u64,
     /// Rendering threads per render node.
@@ -294,6 +334,11 @@ pub struct NodeStats {
     pub cache_peak_bytes: u64,
     pub bytes_fetched_dma: u64,
     pub bytes_fetched_serial: u64,
+    /// Of `bytes_fetched_dma`, those read from a card's shared-memory segment (the rest
+    /// came over TCP).
+    pub bytes_fetched_shared: u64,
+    /// Cards whose shared-memory segment this render node mapped.
+    pub shared_segments: u32,
     /// Fork nodes: bytes served to render nodes, and read from other cards over the G-bus.
     pub bytes_served: u64,
     pub bytes_gbus: u64,
@@ -399,6 +444,8 @@ impl Message {
             Message::RemoteData { .. } => "RemoteData",
             Message::BusRequest { .. } => "BusRequest",
             Message::BusGrant { .. } => "BusGrant",
+            Message::SharedSegment { .. } => "SharedSegment",
+            Message::SharedRead { .. } => "SharedRead",
             Message::ScenePart { .. } => "ScenePart",
             Message::Header { .. } => "Header",
             Message::Hold { .. } => "Hold",

@@ -11,7 +11,9 @@
 //!
 //! A miss blocks the rendering thread while the request travels to the fork node and the
 //! data comes back (by DMA or through the mesh); the bytes received are validated once (and
-//! the chunk transcoded for the walk) and then used in place.
+//! the chunk transcoded for the walk) and then used in place. A DMA read of a card whose
+//! shared-memory segment this node mapped ([`crate::shared`]) copies the bytes from the
+//! mapping instead, and validates them the same way.
 
 use std::{
     cell::Cell,
@@ -88,7 +90,10 @@ pub struct CacheStats {
     pub evictions: AtomicU64,
     /// Most bytes held at once, resident and evicted-but-not-yet-freed together.
     pub peak_bytes: AtomicU64,
+    /// Bytes read by DMA, whichever way they really travelled.
     pub bytes_dma: AtomicU64,
+    /// Of `bytes_dma`, those copied from a shared-memory segment rather than received.
+    pub bytes_shared: AtomicU64,
     pub bytes_serial: AtomicU64,
     /// Nanoseconds rendering threads spent waiting for fetches.
     pub wait_ns: AtomicU64,
@@ -102,6 +107,9 @@ pub struct Source {
     pub chunk_owner: Vec<NodeId>,
     pub tile_owner: Vec<NodeId>,
     pub via: Transfer,
+    /// Cards' memories mapped on this machine, for DMA reads; `None` when the job wants
+    /// every byte over TCP (or its reads are not DMA).
+    pub shared: Option<Arc<crate::shared::SharedSegments>>,
 }
 
 /// A reader that holds no reference into the cache.
@@ -182,6 +190,14 @@ impl DemandCache {
             }
         }
         Ok(())
+    }
+
+    /// How many cards' shared segments DMA reads use.
+    pub fn shared_segments(&self) -> u32 {
+        self.source
+            .as_ref()
+            .and_then(|s| s.shared.as_ref())
+            .map_or(0, |s| s.count())
     }
 
     /// Bytes resident (not counting evicted items not yet freed).
@@ -318,6 +334,15 @@ impl DemandCache {
             "{id:?} is not in the address table"
         )))?;
         let start = Instant::now();
+        if let Some(words) = self.read_shared(src, id, owner)? {
+            self.stats
+                .wait_ns
+                .fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            let bytes = words.len() as u64 * 4;
+            self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed);
+            self.stats.bytes_shared.fetch_add(bytes, Ordering::Relaxed);
+            return self.within_budget(id, words);
+        }
         let request = Message::DataRequest {
             id,
             transfer: src.via,
@@ -341,13 +366,50 @@ impl DemandCache {
             Transfer::Dma => self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed),
             Transfer::Serial => self.stats.bytes_serial.fetch_add(bytes, Ordering::Relaxed),
         };
+        self.within_budget(id, reply.data)
+    }
+
+    /// Refuses an item that could never fit (the scene checks bound chunks, not senders).
+    fn within_budget(&self, id: DataId, words: Box<[u32]>) -> Result<Box<[u32]>, DataError> {
+        let bytes = words.len() as u64 * 4;
         if bytes > self.budget {
             return Err(DataError::Fetch(format!(
                 "{id:?} is {bytes} bytes, more than the whole cache budget of {} bytes",
                 self.budget
             )));
         }
-        Ok(reply.data)
+        Ok(words)
+    }
+
+    /// A copy of `id` from the shared segment of `owner`'s card, if this node mapped it and
+    /// it holds the item: the DMA read without a socket. When the links are delayed the
+    /// fork node is still asked, for the transfer's model time only (an answer without
+    /// data, delivered when the DMA transfer would complete), so the model charges the same.
+    fn read_shared(
+        &self,
+        src: &Source,
+        id: DataId,
+        owner: NodeId,
+    ) -> Result<Option<Box<[u32]>>, DataError> {
+        let Some(segment) = src.shared.as_ref().and_then(|s| s.get(owner)) else {
+            return Ok(None);
+        };
+        if !segment.holds(id) {
+            return Ok(None);
+        }
+        if src.fabric.model().links_delayed() {
+            let request = Message::SharedRead { id, owner };
+            let fabric = src.fabric.clone();
+            let fork = src.fork;
+            src.runtime
+                .block_on(async move {
+                    fabric
+                        .request(fork, &request, Box::new([]), Route::Mesh, FETCH_TIMEOUT)
+                        .await
+                })
+                .map_err(|e| DataError::Fetch(e.to_string()))?;
+        }
+        Ok(segment.read(id))
     }
 }
 

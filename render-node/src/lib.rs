@@ -5,11 +5,13 @@
 //!
 //! The node's life (joining, stopping, losing the host) is [`fabric::role::run_role`]'s;
 //! this crate adds what a render node does with its messages: collect the scene header, the
-//! job and any batch data until rendering can start (`start`), give back unbegun rows when
+//! job and any batch data until rendering can start (`start`), map the cards' memories
+//! their fork nodes publish on this machine (`shared`), give back unbegun rows when
 //! the host asks, report its statistics, and run the host's measurements (`measure`).
 
 pub mod cache;
 mod measure;
+pub mod shared;
 mod start;
 pub mod worker;
 
@@ -54,9 +56,26 @@ struct RenderNode {
 impl RoleHandler for RenderNode {
     const NAME: &'static str = "render node";
 
-    fn on_message(&mut self, frame: Frame, message: Message, _via: Via) {
+    fn on_message(&mut self, frame: Frame, message: Message, via: Via) {
         let fabric = &self.fabric;
         match message {
+            Message::SharedSegment {
+                card,
+                name,
+                nonce,
+                bytes,
+            } if via == Via::Direct(fabric.topology().fork_of(fabric.me()).unwrap_or(0)) => {
+                match self.render.segments.add(card, &name, nonce, bytes) {
+                    Ok(()) => tracing::debug!(
+                        "render node {}: reads card {card}'s memory through shared memory",
+                        fabric.me()
+                    ),
+                    Err(e) => tracing::info!(
+                        "render node {}: {e}; reads card {card}'s memory over TCP",
+                        fabric.me()
+                    ),
+                }
+            }
             Message::Header {
                 len,
                 chunk_owner,
@@ -229,6 +248,8 @@ fn node_stats(
         cache_peak_bytes: cache.map_or(0, |c| g(&c.stats.peak_bytes)),
         bytes_fetched_dma: cache.map_or(0, |c| g(&c.stats.bytes_dma)),
         bytes_fetched_serial: cache.map_or(0, |c| g(&c.stats.bytes_serial)),
+        bytes_fetched_shared: cache.map_or(0, |c| g(&c.stats.bytes_shared)),
+        shared_segments: cache.map_or(0, |c| c.shared_segments()),
         frames_forwarded: c.frames_forwarded,
         frames_around_mesh: c.frames_around_mesh,
         bytes_forwarded: c.bytes_forwarded,

@@ -7,11 +7,12 @@
 use std::sync::Arc;
 
 use fabric::Fabric;
-use protocol::{DataId, JobSpec, NodeId, TransferMode};
+use protocol::{DataId, DmaTransport, JobSpec, NodeId, Transfer, TransferMode};
 use renderer::SceneHeader;
 
 use crate::{
     cache::{DemandCache, Source},
+    shared::SharedSegments,
     worker::{ActiveMap, WorkStats, Worker},
 };
 
@@ -27,6 +28,8 @@ pub(crate) struct Render {
     pub batch_expected: Option<u32>,
     pub cache: Option<Arc<DemandCache>>,
     pub started: bool,
+    /// Cards' memories mapped on this machine, as their fork nodes announce them.
+    pub segments: Arc<SharedSegments>,
 }
 
 /// Everything rendering needs, all here.
@@ -108,6 +111,9 @@ pub(crate) fn build_cache(
                 chunk_owner: r.chunk_owner.clone(),
                 tile_owner: r.tile_owner.clone(),
                 via: ready.job.demand_via,
+                shared: (ready.job.demand_via == Transfer::Dma
+                    && ready.job.dma_transport == DmaTransport::Auto)
+                    .then(|| r.segments.clone()),
             };
             Ok(DemandCache::new(
                 scene.chunk_rules(),
@@ -168,8 +174,6 @@ pub(crate) fn spawn_workers(
 
 #[cfg(test)]
 mod tests {
-    use protocol::Transfer;
-
     use super::*;
 
     fn scene() -> Arc<SceneHeader> {
@@ -185,6 +189,7 @@ mod tests {
             camera: renderer::demo::demo_scene().cameras[0].clone(),
             transfer,
             demand_via: Transfer::Dma,
+            dma_transport: DmaTransport::Auto,
             cache_bytes,
             render_threads: 1,
         })

@@ -345,6 +345,11 @@ struct RenderArgs {
     /// How demand fetches travel: dma (the direct connection) or serial (through the mesh).
     #[arg(long, default_value = "dma", value_parser = parse_transfer)]
     demand_via: protocol::Transfer,
+    /// How DMA reads really travel: auto (through a shared-memory segment when a render node
+    /// shares the machine with the fork node, else TCP) or tcp (always a socket, as between
+    /// machines). The delay model's timing is the same either way.
+    #[arg(long, default_value = "auto", value_parser = parse_dma_transport)]
+    dma_transport: protocol::DmaTransport,
     /// Number of subscreens the image is cut into (default: 8 per render node).
     #[arg(long)]
     subscreens: Option<u32>,
@@ -463,6 +468,14 @@ fn parse_transfer(s: &str) -> Result<protocol::Transfer, String> {
     }
 }
 
+fn parse_dma_transport(s: &str) -> Result<protocol::DmaTransport, String> {
+    match s {
+        "auto" => Ok(protocol::DmaTransport::Auto),
+        "tcp" => Ok(protocol::DmaTransport::Tcp),
+        o => Err(format!("unknown DMA transport {o:?} (auto or tcp)")),
+    }
+}
+
 /// The demo scene's indirect clamp: its caustics (through the glass sphere and off the
 /// mirror onto the walls) are fireflies that unbiased sampling takes minutes to average out.
 const DEMO_CLAMP_INDIRECT: f32 = 4.0;
@@ -558,6 +571,7 @@ fn render(args: RenderArgs) -> Result<()> {
             cluster,
             transfer: args.transfer,
             demand_via: args.demand_via,
+            dma_transport: args.dma_transport,
             cache_percent: args.cache,
             subscreens: args.subscreens,
             adaptive: args.adaptive,
@@ -858,10 +872,14 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         mib(forks.iter().map(|n| n.bytes_gbus).sum())
     );
     eprintln!(
-        "render nodes fetched {:.1} MiB (DMA {:.1}, serial {:.1}); {} frames forwarded; peak memory {:.1} MiB in all (per-node figures: --stats)",
+        "render nodes fetched {:.1} MiB (DMA {:.1}, of which {:.1} through shared memory; serial {:.1}); DMA transport {} ({} of {} render nodes on shared memory); {} frames forwarded; peak memory {:.1} MiB in all (per-node figures: --stats)",
         mib(s.totals.bytes_fetched_dma + s.totals.bytes_fetched_serial),
         mib(s.totals.bytes_fetched_dma),
+        mib(s.totals.bytes_fetched_shared),
         mib(s.totals.bytes_fetched_serial),
+        s.dma_transport,
+        s.shared_memory_nodes,
+        render.len(),
         s.totals.frames_forwarded,
         mib(s.cluster_peak_rss_bytes)
     );

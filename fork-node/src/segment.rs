@@ -1,0 +1,100 @@
+//! This card's memory as real shared memory ([`fabric::shm`]): once the memory is complete,
+//! the items it holds are written into a segment, and every render node of the cluster hears
+//! of it (this card's directly, other cards' through their own fork node, which passes the
+//! announcement on). Render nodes on this machine then read the card's items from the
+//! mapping; the rest keep asking over TCP. The segment is removed when the fork node ends
+//! (`run`), or by the next fork node to start on this machine if this one was killed.
+
+use std::{
+    path::Path,
+    sync::{Arc, Mutex},
+};
+
+use fabric::shm::{self, Published};
+use protocol::{DataId, Message, NodeId};
+
+use crate::ForkNode;
+
+/// The segment this fork node published, shared with `run` so that it is removed when the
+/// role ends even though tasks may still hold the node.
+pub(crate) type SegmentSlot = Arc<Mutex<Option<Published>>>;
+
+impl ForkNode {
+    /// Publishes this card's memory (once) and announces it to the card's render nodes and
+    /// the other fork nodes. Without a shared-memory directory, or if writing fails, nothing
+    /// is announced and every render node stays on TCP.
+    pub(crate) fn publish_segment(&self, card: &[NodeId]) {
+        let f = &self.fabric;
+        let dir = Path::new(shm::SHM_DIR);
+        if !dir.is_dir() {
+            tracing::info!(
+                "fork node {}: no {} here; render nodes read this card over TCP",
+                f.me(),
+                shm::SHM_DIR
+            );
+            return;
+        }
+        let stale = shm::remove_stale(dir);
+        if stale > 0 {
+            tracing::info!(
+                "fork node {}: removed {stale} segments left by fork nodes that died",
+                f.me()
+            );
+        }
+        let items: Vec<(DataId, Arc<[u32]>)> = {
+            let m = self.memory.lock().expect("memory lock");
+            let mut items: Vec<_> = m.data.iter().map(|(id, w)| (*id, w.clone())).collect();
+            items.sort_by_key(|(id, _)| match *id {
+                DataId::Chunk(c) => (0, c),
+                DataId::Tile(t) => (1, t),
+                DataId::Synthetic { bytes } => (2, bytes),
+            });
+            items
+        };
+        let refs: Vec<(DataId, &[u32])> = items.iter().map(|(id, w)| (*id, &w[..])).collect();
+        let published = match Published::create(dir, f.me(), &refs) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::warn!(
+                    "fork node {}: {e}; render nodes read this card over TCP",
+                    f.me()
+                );
+                return;
+            }
+        };
+        tracing::debug!(
+            "fork node {}: published {} items, {} bytes, as {}",
+            f.me(),
+            refs.len(),
+            published.bytes,
+            published.path().display()
+        );
+        let announce = Message::SharedSegment {
+            card: f.me(),
+            name: published.name.clone(),
+            nonce: published.nonce,
+            bytes: published.bytes,
+        };
+        *self.segment.lock().expect("segment lock") = Some(published);
+        let others = f
+            .topology()
+            .fork_nodes()
+            .into_iter()
+            .filter(|&n| n != f.me());
+        for to in card.iter().copied().chain(others) {
+            let _ = f.send_direct(to, &announce, Box::new([]), 0, 0);
+        }
+    }
+
+    /// Another fork node's announcement: passed on to this card's render nodes, which may
+    /// share that fork node's machine too.
+    pub(crate) fn relay_segment(&self, from: NodeId, announce: &Message) {
+        let f = &self.fabric;
+        if !matches!(announce, Message::SharedSegment { card, .. } if *card == from) {
+            return;
+        }
+        for r in self.card_render_nodes() {
+            let _ = f.send_direct(r, announce, Box::new([]), 0, 0);
+        }
+    }
+}
