@@ -39,6 +39,8 @@ struct Recorded {
     transfer: Option<String>,
     cache_percent: Option<f64>,
     adaptive: Option<bool>,
+    demand_via: Option<String>,
+    render_threads: Option<u32>,
     #[serde(default)]
     seconds: RecordedSeconds,
     #[serde(default)]
@@ -84,6 +86,8 @@ pub struct Prediction {
     pub predicted_s: f64,
     /// (predicted - measured) / measured, in percent.
     pub error_percent: Option<f64>,
+    /// Where the prediction is of a different render than the recorded one.
+    pub notes: Vec<String>,
     pub result: SimResult,
 }
 
@@ -126,15 +130,21 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
         },
         (None, None) => return Err(SimulateError::Missing("transfer")),
     };
-    // The records say how each subscreen's fetches came; the mesh means serial link.
-    let recorded_via = recorded
-        .subscreens
-        .as_array()
-        .is_some_and(|s| {
-            s.iter()
-                .any(|r| r.get("fetched_via").and_then(|v| v.as_str()) == Some("mesh"))
-        })
-        .then_some(protocol::Transfer::Serial);
+    // The file says how demand fetches travelled; an older one only per record, where the
+    // mesh means serial link.
+    let recorded_via = match recorded.demand_via.as_deref().map(str::to_lowercase) {
+        Some(v) if v == "serial" => Some(protocol::Transfer::Serial),
+        Some(v) if v == "dma" => Some(protocol::Transfer::Dma),
+        Some(_) => None,
+        None => recorded
+            .subscreens
+            .as_array()
+            .is_some_and(|s| {
+                s.iter()
+                    .any(|r| r.get("fetched_via").and_then(|v| v.as_str()) == Some("mesh"))
+            })
+            .then_some(protocol::Transfer::Serial),
+    };
     let via = overrides
         .via
         .or(recorded_via)
@@ -184,6 +194,12 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
         && overrides.adaptive.is_none()
         && overrides.cpu_scale.is_none();
     let measured_s = recorded.seconds.render.filter(|_| same_render);
+    let mut notes = Vec::new();
+    if let Some(threads) = recorded.render_threads.filter(|&t| t > 1) {
+        notes.push(format!(
+            "the render ran {threads} rendering threads per render node; the simulator models one, so it predicts a render of one thread per node"
+        ));
+    }
     let predicted_s = result.total_s;
     Ok(Prediction {
         topology: config.topology.summary(),
@@ -198,6 +214,7 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
         error_percent: measured_s
             .filter(|&m| m > 0.0)
             .map(|m| (predicted_s - m) / m * 100.0),
+        notes,
         result,
     })
 }
@@ -208,6 +225,9 @@ pub fn summary(p: &Prediction) -> String {
         "{}\nlink model {:?} at time scale {}, transfer {}, subscreens {}, adaptive {}, cpu scale {}\n",
         p.topology, p.link_model, p.time_scale, p.transfer, p.subscreens, p.adaptive, p.cpu_scale
     );
+    for note in &p.notes {
+        out += &format!("note: {note}\n");
+    }
     let r = &p.result;
     out += &format!("predicted render time {:.4} s", p.predicted_s);
     match (p.measured_s, p.error_percent) {
@@ -288,6 +308,18 @@ mod tests {
             "{text}"
         );
         assert_eq!(text.lines().filter(|l| l.starts_with("   ")).count(), 4);
+    }
+
+    #[test]
+    fn the_recorded_demand_path_and_thread_count_are_heeded() {
+        let serial = stats().replace(
+            r#""adaptive": false,"#,
+            r#""adaptive": false, "demand_via": "Serial", "render_threads": 2,"#,
+        );
+        let p = predict(&serial, &Overrides::default()).unwrap();
+        assert_eq!((p.result.bytes.mesh, p.result.bytes.dma), (16000, 0));
+        assert_eq!(p.notes.len(), 1);
+        assert!(summary(&p).contains("note: the render ran 2 rendering threads"));
     }
 
     #[test]

@@ -163,7 +163,10 @@ struct StatsFile {
 
 impl Workload {
     /// Reads the per-subscreen records of a render's `--stats` JSON. The image size is the
-    /// file's `width` and `height` when it has them, else the records' bounding box.
+    /// file's `width` and `height` when it has them, else the records' bounding box. The
+    /// subscreens are put in the host's plan order (top to bottom, left to right), whatever
+    /// order the file lists them in: a render without adaptive redivision or lost nodes
+    /// records each pixel once, and that is the render this replays.
     pub fn from_stats_json(text: &str) -> Result<Workload, WorkloadError> {
         let value: serde_json::Value = serde_json::from_str(text).map_err(WorkloadError::Json)?;
         let has_records = value.get("subscreens").is_some_and(|s| s.is_array())
@@ -190,8 +193,11 @@ impl Workload {
                 .max()
                 .unwrap_or(0)
         });
-        let subscreens = file
-            .subscreens
+        // The records come in the order they finished; the host hands subscreens out in
+        // its plan's order, which cuts the image row by row, left to right.
+        let mut records = file.subscreens;
+        records.sort_by_key(|r| (r.y, r.x));
+        let subscreens = records
             .into_iter()
             .map(|r| {
                 let mut chunks = r.chunks;
@@ -438,6 +444,13 @@ mod tests {
             "sorted, once each"
         );
         assert_eq!(w.subscreens[1].bands[0].tiles, vec![1]);
+        // Listed in the order they finished, read in the order they were planned.
+        let swapped = STATS.replace(r#""x": 0, "y": 0"#, r#""x": 9, "y": 9"#);
+        let swapped = swapped.replacen(r#""x": 2, "y": 0"#, r#""x": 0, "y": 0"#, 1);
+        let swapped = swapped.replace(r#""x": 9, "y": 9"#, r#""x": 2, "y": 0"#);
+        let w2 = Workload::from_stats_json(&swapped).unwrap();
+        assert_eq!(w2.subscreens[0].rect, rect(0, 0, 2, 2));
+        assert_eq!(w2.subscreens[0].bands[0].chunks, vec![0]);
         assert_eq!(w.scene_bytes(), 111);
         assert_eq!(w.largest_item(), 40);
         assert_eq!(w.cpu_s(), 6.0);
