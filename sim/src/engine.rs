@@ -461,7 +461,8 @@ impl Sim<'_> {
             a.in_hand = a.next_row;
             a.next_row += 1;
             n.enter(Phase::Busy, now);
-            self.queue.at(now + row_ns, Event::RowDone { node });
+            self.queue
+                .at(now.saturating_add(row_ns), Event::RowDone { node });
             return;
         }
     }

@@ -215,12 +215,12 @@ pub fn simulate(workload: &Workload, config: &SimConfig) -> Result<SimResult, Si
     let work = match config.balance {
         Balance::AsRecorded => workload,
         Balance::Static => {
-            divided = workload.divided(render_nodes);
+            divided = workload.divided(render_nodes)?;
             &divided
         }
         Balance::Dynamic { subscreens: 0 } => return Err(SimError::NoSubscreens),
         Balance::Dynamic { subscreens } => {
-            divided = workload.divided(subscreens);
+            divided = workload.divided(subscreens)?;
             &divided
         }
     };

@@ -309,8 +309,9 @@ impl Workload {
     }
 
     /// The same image cut into about `n` subscreens as the host cuts it, the costs carried
-    /// over as the module docs say.
-    pub fn divided(&self, n: u32) -> Workload {
+    /// over as the module docs say. Fails only on a workload that fails [`Workload::check`].
+    pub fn divided(&self, n: u32) -> Result<Workload, WorkloadError> {
+        self.check()?;
         // Every band of every subscreen is a cell of known cost and items.
         struct Cell<'a> {
             x: u32,
@@ -397,13 +398,13 @@ impl Workload {
                 Subscreen { rect, bands }
             })
             .collect();
-        Workload {
+        Ok(Workload {
             width: self.width,
             height: self.height,
             subscreens,
             chunk_bytes: self.chunk_bytes.clone(),
             tile_bytes: self.tile_bytes.clone(),
-        }
+        })
     }
 }
 
@@ -492,14 +493,14 @@ mod tests {
     fn dividing_keeps_the_total_cost_and_the_items_of_each_region() {
         let w = Workload::from_stats_json(STATS).unwrap();
         // One subscreen over the whole image: both recorded ones, in one band.
-        let one = w.divided(1);
+        let one = w.divided(1).unwrap();
         assert_eq!(one.subscreens.len(), 1);
         assert_eq!(one.subscreens[0].rect, rect(0, 0, 4, 2));
         assert_eq!(one.subscreens[0].bands.len(), 1);
         assert_eq!(one.subscreens[0].bands[0].chunks, vec![0, 1, 3]);
         assert!((one.cpu_s() - 6.0).abs() < 1e-12);
         // Eight single pixels: each pays its recorded subscreen's cost per pixel.
-        let eight = w.divided(8);
+        let eight = w.divided(8).unwrap();
         assert_eq!(eight.subscreens.len(), 8);
         assert!((eight.cpu_s() - 6.0).abs() < 1e-12);
         let right = eight
@@ -525,11 +526,20 @@ mod tests {
             chunk_bytes: vec![1, 1],
             tile_bytes: vec![],
         };
-        let one = w.divided(1);
+        let one = w.divided(1).unwrap();
         let bands = &one.subscreens[0].bands;
         assert_eq!(bands.len(), 2);
         assert_eq!((bands[0].rows, bands[0].chunks.clone()), (1, vec![0]));
         assert_eq!((bands[1].rows, bands[1].cpu_s), (3, 3.0));
+        // A workload built by hand that reaches past its image is refused, not indexed.
+        let mut bad = w;
+        bad.height = 3;
+        assert!(
+            bad.divided(2)
+                .unwrap_err()
+                .to_string()
+                .contains("reaches past")
+        );
     }
 
     #[test]
