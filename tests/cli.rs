@@ -232,3 +232,57 @@ fn experiment_links_writes_its_tables_and_plots() {
     assert!(one_way.iter().all(|o| o["samples"] == 2), "{one_way:?}");
     assert!(report["raw"]["one_hop_round_trip_us"].as_f64().unwrap() > 0.0);
 }
+
+/// `magg-host simulate` on a stats file of per-subscreen records (written here, as a
+/// cluster render writes them): the prediction beside the measured time, the same again as
+/// JSON, and what is wrong with a file it cannot use in one line.
+#[test]
+fn simulate_predicts_a_recorded_render_and_another_machine() {
+    let dir = scratch("simulate");
+    let record = |i: u32| {
+        format!(
+            r#"{{"node": {}, "x": 0, "y": {i}, "width": 16, "height": 1, "start_s": 0.0,
+                "end_s": 0.05, "cpu_s": 0.05, "pixels": 16, "samples": 16, "rays": 16,
+                "chunks": [{}], "tiles": [0], "fetched_bytes": 0, "fetches": 0,
+                "fetched_via": "dma"}}"#,
+            2 + i % 4,
+            i % 3
+        )
+    };
+    let records: Vec<String> = (0..8).map(record).collect();
+    let stats = format!(
+        r#"{{"width": 16, "height": 8, "topology": "tiny", "link_model": "Paper",
+            "time_scale": 0.01, "transfer": "Demand", "cache_percent": 100.0, "adaptive": false,
+            "seconds": {{"render": 0.11}}, "subscreens": [{}],
+            "chunk_bytes": [3000, 5000, 7000], "tile_bytes": [16384]}}"#,
+        records.join(",")
+    );
+    let file = dir.join("stats.json");
+    std::fs::write(&file, stats).unwrap();
+    let json = dir.join("prediction.json");
+    let o = run(host().arg("simulate").arg(&file).arg("--json").arg(&json));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("predicted render time 0.1"), "{out}");
+    assert!(out.contains("measured 0.1100 s"), "{out}");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(v["result"]["render_nodes"], 4);
+    // The same costs on the 1000-node machine, 2000 subscreens: no measurement to compare.
+    let o = run(host().arg("simulate").arg(&file).args([
+        "--topology",
+        "magg1000",
+        "--subscreens",
+        "2000",
+    ]));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("1000 render nodes"), "{out}");
+    assert!(!out.contains("measured"), "{out}");
+    // A stats file from before the records.
+    std::fs::write(&file, r#"{"width": 16, "subscreens": 8}"#).unwrap();
+    let o = run(host().arg("simulate").arg(&file));
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(err.contains("no per-subscreen records"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+}

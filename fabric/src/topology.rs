@@ -26,8 +26,9 @@
 //!
 //! A render node's requests to its fork node travel the mesh, column first then row
 //! (dimension-ordered), to the card's entry node and up; the paper's transfer time grows
-//! with the row and column distance exactly so. Topology is data: `tiny` (one card of 2x2)
-//! and `grid:CARDSxROWSxCOLS` are presets, and a TOML file can describe any layout, listing
+//! with the row and column distance exactly so. Topology is data: `tiny` (one card of 2x2),
+//! `magg1000` (50 cards of 4x5, 1000 render nodes, for the simulator to go past the paper's
+//! 80) and `grid:CARDSxROWSxCOLS` are presets, and a TOML file can describe any layout, listing
 //! nodes and links one by one or by a `[grid]` section, with the delay model's constants.
 
 use std::collections::{BTreeSet, VecDeque};
@@ -75,7 +76,7 @@ pub enum TopologyError {
         path: std::path::PathBuf,
         source: Box<TopologyError>,
     },
-    #[error("unknown topology preset {0:?} (magg, tiny, or grid:CARDSxROWSxCOLS)")]
+    #[error("unknown topology preset {0:?} (magg, magg1000, tiny, or grid:CARDSxROWSxCOLS)")]
     UnknownPreset(String),
     #[error("invalid topology: {0}")]
     Invalid(String),
@@ -148,6 +149,7 @@ impl Topology {
         match name {
             "magg" => Topology::grid("magg", 5, 4, 4),
             "tiny" => Topology::grid("tiny", 1, 2, 2),
+            "magg1000" => Topology::grid("magg1000", 50, 4, 5),
             other => {
                 let dims = other
                     .strip_prefix("grid:")
@@ -540,6 +542,8 @@ mod tests {
     fn tiny_and_grids() {
         let t = Topology::preset("tiny").unwrap();
         assert_eq!(t.counts(), (1, 4));
+        let big = Topology::preset("magg1000").unwrap();
+        assert_eq!(big.counts(), (50, 1000));
         let g = Topology::preset("grid:10x8x5").unwrap();
         assert_eq!(g.counts(), (10, 400));
         assert!(Topology::preset("grid:0x1x1").is_err());

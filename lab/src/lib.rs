@@ -1,8 +1,9 @@
 //! The lab: what measures magg rather than runs it. Benchmarks (`bench`, `raybench`,
-//! `whittedbench`), the paper's experiments (`experiment`, `runs`), the gallery of shared
-//! scenes, plots and image comparison. It stands apart from the roles so that the host,
-//! fork node and render node libraries carry only what a cluster needs; it uses them the
-//! way a user would (whole renders, real clusters, the render node's cache).
+//! `whittedbench`), the paper's experiments (`experiment`, `runs`), the simulator run on a
+//! render's stats (`simulate`), the gallery of shared scenes, plots and image comparison.
+//! It stands apart from the roles so that the host, fork node and render node libraries
+//! carry only what a cluster needs; it uses them the way a user would (whole renders, real
+//! clusters, the render node's cache).
 
 pub mod balance;
 pub mod bench;
@@ -13,6 +14,7 @@ pub mod gallery;
 pub mod plot;
 pub mod raybench;
 pub mod runs;
+pub mod simulate;
 pub mod whittedbench;
 
 /// Why a lab command (bench, gallery, plots) could not finish.

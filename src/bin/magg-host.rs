@@ -35,6 +35,9 @@ enum Command {
     Gallery(GalleryArgs),
     /// Compare an image with a reference: relative MSE and channel means.
     Compare { image: PathBuf, reference: PathBuf },
+    /// Predict a render with the simulator from a cluster render's --stats records: by
+    /// default the same render (its time beside the measured one), or changed by the flags.
+    Simulate(SimulateArgs),
     /// Run as a fork node (what a spawning host starts; the flags of magg-fork-node).
     #[command(hide = true)]
     ForkNode(magg::NodeArgs),
@@ -450,6 +453,71 @@ fn parse_rgb(s: &str) -> Result<glam::Vec3, String> {
         return Err(format!("{s:?}: radiance must be finite and not negative"));
     }
     Ok(c)
+}
+
+#[derive(Args)]
+struct SimulateArgs {
+    /// The --stats JSON of a cluster render (with per-subscreen records).
+    stats: PathBuf,
+    /// Another machine: a preset (magg, magg1000, tiny, grid:CARDSxROWSxCOLS) or a file.
+    #[arg(long)]
+    topology: Option<String>,
+    /// Link delay model: none or paper.
+    #[arg(long)]
+    link_model: Option<fabric::model::LinkModelKind>,
+    /// Multiplies every modelled delay.
+    #[arg(long)]
+    time_scale: Option<f64>,
+    /// demand or batch.
+    #[arg(long, value_parser = parse_transfer_mode)]
+    transfer: Option<protocol::TransferMode>,
+    /// Cache budget of each render node, in percent of the scene's bytes.
+    #[arg(long)]
+    cache: Option<f64>,
+    /// How demand fetches travel: dma or serial.
+    #[arg(long, value_parser = parse_transfer)]
+    demand_via: Option<protocol::Transfer>,
+    /// About this many subscreens, cut as the host cuts them (costs carried over by area).
+    #[arg(long, conflicts_with = "static_division")]
+    subscreens: Option<u32>,
+    /// One subscreen per render node.
+    #[arg(long = "static")]
+    static_division: bool,
+    /// Adaptive redivision on or off.
+    #[arg(long)]
+    adaptive: Option<bool>,
+    /// Multiplies every recorded CPU time (a slower or faster processor).
+    #[arg(long)]
+    cpu_scale: Option<f64>,
+    /// Also write the whole prediction as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+fn simulate(a: SimulateArgs) -> Result<()> {
+    let text = std::fs::read_to_string(&a.stats)
+        .with_context(|| format!("reading {}", a.stats.display()))?;
+    let overrides = lab::simulate::Overrides {
+        topology: a.topology,
+        link: a.link_model,
+        time_scale: a.time_scale,
+        transfer: a.transfer,
+        cache_percent: a.cache,
+        via: a.demand_via,
+        subscreens: a.subscreens,
+        static_division: a.static_division,
+        adaptive: a.adaptive,
+        cpu_scale: a.cpu_scale,
+    };
+    let p = lab::simulate::predict(&text, &overrides)
+        .with_context(|| format!("simulating {}", a.stats.display()))?;
+    print!("{}", lab::simulate::summary(&p));
+    if let Some(path) = a.json {
+        let json = serde_json::to_vec_pretty(&p).context("encoding the prediction")?;
+        scene_io::image_io::write_atomic(&path, &json)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
 }
 
 fn parse_transfer_mode(s: &str) -> Result<protocol::TransferMode, String> {
@@ -1017,6 +1085,7 @@ fn main() {
             Ok(())
         })(),
         Command::Experiment(cmd) => experiment(cmd),
+        Command::Simulate(args) => simulate(args),
         Command::ForkNode(node) => magg::node_main(protocol::Role::Fork, &node),
         Command::RenderNode(node) => magg::node_main(protocol::Role::Render, &node),
         Command::Compare { image, reference } => (|| {

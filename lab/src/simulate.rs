@@ -1,0 +1,352 @@
+//! `magg-host simulate STATS.json`: the simulator run on a real render's own records, its
+//! prediction printed beside the render time the host measured.
+//!
+//! By default the simulation takes every setting from the stats file (topology, link model
+//! and time scale, transfer, cache size, adaptive redivision, the recorded subscreens), so
+//! that prediction and measurement are of the same render: that is how the simulator is
+//! validated. Any setting can be overridden, to ask what the same costs would take on
+//! another machine or under another policy.
+
+use fabric::{Topology, model::LinkModelKind};
+use protocol::TransferMode;
+use serde::{Deserialize, Serialize};
+use sim::{Balance, SimConfig, SimResult, Transfer, Workload};
+
+/// What to change from the recorded render; `None` keeps the recorded setting.
+#[derive(Clone, Debug, Default)]
+pub struct Overrides {
+    pub topology: Option<String>,
+    pub link: Option<LinkModelKind>,
+    pub time_scale: Option<f64>,
+    pub transfer: Option<TransferMode>,
+    pub cache_percent: Option<f64>,
+    pub via: Option<protocol::Transfer>,
+    /// About this many subscreens instead of the recorded ones.
+    pub subscreens: Option<u32>,
+    /// One subscreen per render node.
+    pub static_division: bool,
+    pub adaptive: Option<bool>,
+    /// Multiplies every recorded CPU time.
+    pub cpu_scale: Option<f64>,
+}
+
+/// The settings of the recorded render, as its stats file states them.
+#[derive(Deserialize, Default)]
+struct Recorded {
+    topology: Option<String>,
+    link_model: Option<String>,
+    time_scale: Option<f64>,
+    transfer: Option<String>,
+    cache_percent: Option<f64>,
+    adaptive: Option<bool>,
+    demand_via: Option<String>,
+    render_threads: Option<u32>,
+    #[serde(default)]
+    seconds: RecordedSeconds,
+    #[serde(default)]
+    subscreens: serde_json::Value,
+}
+
+#[derive(Deserialize, Default)]
+struct RecordedSeconds {
+    render: Option<f64>,
+}
+
+/// Why a simulation of a stats file could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum SimulateError {
+    #[error(transparent)]
+    Workload(#[from] sim::WorkloadError),
+    #[error(transparent)]
+    Sim(#[from] sim::SimError),
+    #[error(transparent)]
+    Topology(#[from] fabric::topology::TopologyError),
+    #[error(
+        "the stats file does not say which {0} the render used (an in-process render?); give it with --{0}"
+    )]
+    Missing(&'static str),
+    #[error(
+        "the stats file's {name} {value:?} is not one the simulator knows; give it with --{name}"
+    )]
+    Unknown { name: &'static str, value: String },
+}
+
+/// A prediction beside the measurement, with the settings it was made under.
+#[derive(Clone, Debug, Serialize)]
+pub struct Prediction {
+    pub topology: String,
+    pub link_model: LinkModelKind,
+    pub time_scale: f64,
+    pub transfer: String,
+    pub subscreens: String,
+    pub adaptive: bool,
+    pub cpu_scale: f64,
+    /// The host's render time in the stats file, when the simulated render is that render.
+    pub measured_s: Option<f64>,
+    pub predicted_s: f64,
+    /// (predicted - measured) / measured, in percent.
+    pub error_percent: Option<f64>,
+    /// Where the prediction is of a different render than the recorded one.
+    pub notes: Vec<String>,
+    pub result: SimResult,
+}
+
+/// Simulates the render a stats file describes, with `overrides` applied.
+pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, SimulateError> {
+    let workload = Workload::from_stats_json(stats_json)?;
+    let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
+    let topology_name = overrides
+        .topology
+        .clone()
+        .or(recorded.topology.clone())
+        .ok_or(SimulateError::Missing("topology"))?;
+    let topology = Topology::resolve(&topology_name)?;
+    let link = match (overrides.link, recorded.link_model.as_deref()) {
+        (Some(l), _) => l,
+        (None, Some(name)) => name
+            .to_lowercase()
+            .parse()
+            .map_err(|_| SimulateError::Unknown {
+                name: "link-model",
+                value: name.into(),
+            })?,
+        (None, None) => topology.model.link,
+    };
+    let time_scale = overrides
+        .time_scale
+        .or(recorded.time_scale)
+        .unwrap_or(topology.model.time_scale);
+    let mode = match (overrides.transfer, recorded.transfer.as_deref()) {
+        (Some(t), _) => t,
+        (None, Some(name)) => match name.to_lowercase().as_str() {
+            "batch" => TransferMode::Batch,
+            "demand" => TransferMode::Demand,
+            _ => {
+                return Err(SimulateError::Unknown {
+                    name: "transfer",
+                    value: name.into(),
+                });
+            }
+        },
+        (None, None) => return Err(SimulateError::Missing("transfer")),
+    };
+    // The file says how demand fetches travelled; an older one only per record, where the
+    // mesh means serial link.
+    let recorded_via = match recorded.demand_via.as_deref().map(str::to_lowercase) {
+        Some(v) if v == "serial" => Some(protocol::Transfer::Serial),
+        Some(v) if v == "dma" => Some(protocol::Transfer::Dma),
+        Some(_) => None,
+        None => recorded
+            .subscreens
+            .as_array()
+            .is_some_and(|s| {
+                s.iter()
+                    .any(|r| r.get("fetched_via").and_then(|v| v.as_str()) == Some("mesh"))
+            })
+            .then_some(protocol::Transfer::Serial),
+    };
+    let via = overrides
+        .via
+        .or(recorded_via)
+        .unwrap_or(protocol::Transfer::Dma);
+    let (transfer, transfer_name) = match mode {
+        TransferMode::Batch => (Transfer::Batch, "batch".to_string()),
+        TransferMode::Demand => {
+            let percent = overrides
+                .cache_percent
+                .or(recorded.cache_percent)
+                .ok_or(SimulateError::Missing("cache"))?;
+            (
+                Transfer::demand_percent(&workload, percent, via),
+                format!("demand by {via:?}, cache {percent}%").to_lowercase(),
+            )
+        }
+    };
+    let (balance, subscreens) = match (overrides.static_division, overrides.subscreens) {
+        (true, _) => (Balance::Static, "one per render node".to_string()),
+        (false, Some(n)) => (Balance::Dynamic { subscreens: n }, format!("about {n}")),
+        (false, None) => (
+            Balance::AsRecorded,
+            format!("{} as recorded", workload.subscreens.len()),
+        ),
+    };
+    let adaptive = overrides.adaptive.or(recorded.adaptive).unwrap_or(false);
+    let cpu_scale = overrides.cpu_scale.unwrap_or(1.0);
+    let config = SimConfig {
+        link,
+        time_scale,
+        transfer,
+        balance,
+        adaptive,
+        cpu_scale,
+        ..SimConfig::new(topology)
+    };
+    let result = sim::simulate(&workload, &config)?;
+    // The measurement is of the same render only when nothing that changes it was changed.
+    let same_render = overrides.topology.is_none()
+        && overrides.link.is_none()
+        && overrides.time_scale.is_none()
+        && overrides.transfer.is_none()
+        && overrides.cache_percent.is_none()
+        && overrides.via.is_none()
+        && overrides.subscreens.is_none()
+        && !overrides.static_division
+        && overrides.adaptive.is_none()
+        && overrides.cpu_scale.is_none();
+    let measured_s = recorded.seconds.render.filter(|_| same_render);
+    let mut notes = Vec::new();
+    if let Some(threads) = recorded.render_threads.filter(|&t| t > 1) {
+        notes.push(format!(
+            "the render ran {threads} rendering threads per render node; the simulator models one, so it predicts a render of one thread per node"
+        ));
+    }
+    let predicted_s = result.total_s;
+    Ok(Prediction {
+        topology: config.topology.summary(),
+        link_model: link,
+        time_scale,
+        transfer: transfer_name,
+        subscreens,
+        adaptive,
+        cpu_scale,
+        measured_s,
+        predicted_s,
+        error_percent: measured_s
+            .filter(|&m| m > 0.0)
+            .map(|m| (predicted_s - m) / m * 100.0),
+        notes,
+        result,
+    })
+}
+
+/// The prediction as a few lines and a table of the render nodes.
+pub fn summary(p: &Prediction) -> String {
+    let mut out = format!(
+        "{}\nlink model {:?} at time scale {}, transfer {}, subscreens {}, adaptive {}, cpu scale {}\n",
+        p.topology, p.link_model, p.time_scale, p.transfer, p.subscreens, p.adaptive, p.cpu_scale
+    );
+    for note in &p.notes {
+        out += &format!("note: {note}\n");
+    }
+    let r = &p.result;
+    out += &format!("predicted render time {:.4} s", p.predicted_s);
+    match (p.measured_s, p.error_percent) {
+        (Some(m), Some(e)) => out += &format!(", measured {m:.4} s ({e:+.1}%)\n"),
+        _ => out += "\n",
+    }
+    out += &format!(
+        "{} subscreens handed out ({} split off), {} fetches: {} bytes by DMA, {} through the mesh, {} over the G-bus, {} in the batch handout; {} messages, {} events\n",
+        r.subscreens,
+        r.subscreens_split,
+        r.transfers,
+        r.bytes.dma,
+        r.bytes.mesh,
+        r.bytes.gbus,
+        r.bytes.batch,
+        r.messages,
+        r.events
+    );
+    out += "node   busy_s  waiting_s   idle_s  subscreens  fetches\n";
+    for n in &r.nodes {
+        out += &format!(
+            "{:>4} {:>8.4} {:>10.4} {:>8.4} {:>11} {:>8}\n",
+            n.node, n.busy_s, n.waiting_s, n.idle_s, n.subscreens, n.fetches
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A demand render on `tiny` with the paper's links at a tenth of their time: four
+    /// subscreens, each touching one of two chunks.
+    fn stats() -> String {
+        let record = |i: u32, chunk: u32| {
+            format!(
+                r#"{{"node": {}, "x": 0, "y": {i}, "width": 8, "height": 1, "start_s": 0.0,
+                    "end_s": 0.1, "cpu_s": 0.1, "pixels": 8, "samples": 8, "rays": 8,
+                    "chunks": [{chunk}], "tiles": [], "fetched_bytes": 4000, "fetches": 1,
+                    "fetched_via": "dma"}}"#,
+                2 + i
+            )
+        };
+        format!(
+            r#"{{"width": 8, "height": 4, "topology": "tiny", "link_model": "Paper",
+                "time_scale": 0.1, "transfer": "Demand", "cache_percent": 50.0,
+                "adaptive": false, "seconds": {{"render": 0.125}},
+                "subscreens": [{}, {}, {}, {}],
+                "chunk_bytes": [4000, 4000], "tile_bytes": []}}"#,
+            record(0, 0),
+            record(1, 1),
+            record(2, 0),
+            record(3, 1)
+        )
+    }
+
+    #[test]
+    fn simulates_the_recorded_render_and_compares_with_its_time() {
+        let p = predict(&stats(), &Overrides::default()).unwrap();
+        assert_eq!(p.link_model, LinkModelKind::Paper);
+        assert_eq!(p.time_scale, 0.1);
+        assert_eq!(p.result.render_nodes, 4);
+        assert_eq!(p.result.transfers, 4, "each node fetches its one chunk");
+        // A tenth of a second of rendering on each node, plus the messages.
+        assert!(
+            p.predicted_s > 0.1 && p.predicted_s < 0.11,
+            "{}",
+            p.predicted_s
+        );
+        assert_eq!(p.measured_s, Some(0.125));
+        let e = p.error_percent.unwrap();
+        assert!((e - (p.predicted_s - 0.125) / 0.125 * 100.0).abs() < 1e-9);
+        let text = summary(&p);
+        assert!(text.contains("measured 0.1250 s"), "{text}");
+        assert!(
+            text.contains("tiny: 1 host + 1 fork nodes + 4 render nodes"),
+            "{text}"
+        );
+        assert_eq!(text.lines().filter(|l| l.starts_with("   ")).count(), 4);
+    }
+
+    #[test]
+    fn the_recorded_demand_path_and_thread_count_are_heeded() {
+        let serial = stats().replace(
+            r#""adaptive": false,"#,
+            r#""adaptive": false, "demand_via": "Serial", "render_threads": 2,"#,
+        );
+        let p = predict(&serial, &Overrides::default()).unwrap();
+        assert_eq!((p.result.bytes.mesh, p.result.bytes.dma), (16000, 0));
+        assert_eq!(p.notes.len(), 1);
+        assert!(summary(&p).contains("note: the render ran 2 rendering threads"));
+    }
+
+    #[test]
+    fn an_override_makes_it_another_render_with_no_measurement() {
+        let more = Overrides {
+            topology: Some("grid:1x1x2".into()),
+            link: Some(LinkModelKind::None),
+            ..Overrides::default()
+        };
+        let p = predict(&stats(), &more).unwrap();
+        assert_eq!(p.result.render_nodes, 2);
+        assert_eq!((p.measured_s, p.error_percent), (None, None));
+        assert!(
+            (p.predicted_s - 0.2).abs() < 1e-9,
+            "two subscreens each, no delays"
+        );
+    }
+
+    #[test]
+    fn a_stats_file_without_what_is_needed_says_so() {
+        let no_topology = stats().replace(r#""topology": "tiny","#, "");
+        let e = predict(&no_topology, &Overrides::default()).unwrap_err();
+        assert!(e.to_string().contains("--topology"), "{e}");
+        let odd = stats().replace(r#""transfer": "Demand""#, r#""transfer": "Carrier""#);
+        let e = predict(&odd, &Overrides::default()).unwrap_err();
+        assert!(e.to_string().contains("\"Carrier\""), "{e}");
+        let e = predict("{}", &Overrides::default()).unwrap_err();
+        assert!(e.to_string().contains("no per-subscreen records"), "{e}");
+    }
+}
