@@ -35,6 +35,16 @@ enum Command {
     Gallery(GalleryArgs),
     /// Compare an image with a reference: relative MSE and channel means.
     Compare { image: PathBuf, reference: PathBuf },
+    /// Draw a render's timeline (a row per render node, a bar per subscreen, darker the
+    /// more it fetched) and its image tinted by who rendered each subscreen, from its
+    /// `--stats` file: STATS.timeline.png and STATS.nodes.png.
+    Plot {
+        /// The `--stats` file of a render (in one process or on a cluster).
+        stats: PathBuf,
+        /// Folder for the PNG files (default: the stats file's folder).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+    },
     /// Run as a fork node (what a spawning host starts; the flags of magg-fork-node).
     #[command(hide = true)]
     ForkNode(magg::NodeArgs),
@@ -762,7 +772,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
     );
     eprintln!(
         "{} subscreens ({} split off), {} transfer, cache {}% ({} bytes a node), link model {} x{}",
-        s.subscreens,
+        s.subscreen_count,
         s.subscreens_split,
         s.transfer,
         s.cache_percent,
@@ -922,6 +932,12 @@ fn main() {
         Command::Experiment(cmd) => experiment(cmd),
         Command::ForkNode(node) => magg::node_main(protocol::Role::Fork, &node),
         Command::RenderNode(node) => magg::node_main(protocol::Role::Render, &node),
+        Command::Plot { stats, output } => (|| {
+            let plots = lab::timeline::plot(&stats, output.as_deref())?;
+            println!("{}", plots.timeline.display());
+            println!("{}", plots.tinted.display());
+            Ok(())
+        })(),
         Command::Compare { image, reference } => (|| {
             let a = scene_io::read_image(&image)
                 .with_context(|| format!("reading {}", image.display()))?;
