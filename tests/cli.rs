@@ -57,6 +57,69 @@ fn stats_file_reports_the_work() {
     assert!(v["rays"]["total"].as_u64().unwrap() >= 32 * 32 * 3);
     assert!(v["seconds"]["render"].as_f64().unwrap() > 0.0);
     assert!(v["samples_per_second"].as_f64().unwrap() > 0.0);
+    records_add_up(&v, 32 * 32);
+    // The plots of its records, beside the stats.
+    let o = run(host().arg("plot").arg(&stats));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("s.timeline.png").is_file());
+    assert!(dir.join("s.nodes.png").is_file());
+}
+
+/// The per-subscreen records of a `--stats` file add up to the render's totals.
+fn records_add_up(v: &serde_json::Value, pixels: u64) {
+    let records = v["subscreens"].as_array().unwrap();
+    let sum = |key: &str| {
+        records
+            .iter()
+            .map(|r| r[key].as_u64().unwrap())
+            .sum::<u64>()
+    };
+    assert_eq!(sum("pixels"), pixels);
+    assert_eq!(sum("samples"), v["samples"].as_u64().unwrap());
+    assert_eq!(sum("rays"), v["rays"]["total"].as_u64().unwrap());
+    for r in records {
+        assert!(r["start_s"].as_f64().unwrap() <= r["end_s"].as_f64().unwrap());
+    }
+    assert!(
+        records
+            .iter()
+            .any(|r| !r["chunks"].as_array().unwrap().is_empty()),
+        "the demo scene's geometry is touched"
+    );
+    assert_eq!(
+        v["chunk_bytes"].as_array().unwrap().len() as u64,
+        v["chunks"].as_u64().unwrap()
+    );
+}
+
+/// In one process, a record per tile, by the thread that rendered it, nothing fetched.
+#[test]
+fn in_process_stats_record_every_tile() {
+    let dir = scratch("stats-in-process");
+    let out = dir.join("a.png");
+    let stats = dir.join("s.json");
+    let o = run(host()
+        .args(["render", "--in-process", "--threads", "2"])
+        .args(["--width", "40", "--height", "24", "--spp", "2", "-o"])
+        .arg(&out)
+        .arg("--stats")
+        .arg(&stats));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    records_add_up(&v, 40 * 24);
+    let records = v["subscreens"].as_array().unwrap();
+    // 16x16 tiles: three across, two down.
+    assert_eq!(records.len(), 6);
+    for r in records {
+        assert!(r["node"].as_u64().unwrap() < 2, "{r}");
+        assert_eq!(r["fetched_via"], "none");
+        assert_eq!(r["fetches"], 0);
+        assert!(r["cpu_s"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    let o = run(host().arg("plot").arg(&stats).arg("-o").arg(dir.join("p")));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("p/s.timeline.png").is_file());
+    assert!(dir.join("p/s.nodes.png").is_file());
 }
 
 fn expect_error(args: &[&str], out: &std::path::Path, needle: &str) {

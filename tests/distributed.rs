@@ -212,6 +212,108 @@ fn adaptive_redivision_splits_subscreens() {
     assert!(busy >= 3, "only {busy} render nodes got work");
 }
 
+/// Every subscreen a cluster rendered has a record (where, who, when, what it cost, which
+/// chunks and tiles it touched, what was fetched for it) that adds up to the render's
+/// totals, and `magg-host plot` draws them.
+#[test]
+fn cluster_stats_record_every_subscreen_and_plot_them() {
+    let dir = scratch("records");
+    let stats = dir.join("s.json");
+    let out = dir.join("r.pfm");
+    let (w, h) = (64u64, 48u64);
+    let o = render(
+        &[
+            "--spawn",
+            "tiny",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--spp",
+            "2",
+            "--transfer",
+            "demand",
+            "--cache",
+            "40",
+            "--chunk-triangles",
+            "256",
+            "--subscreens",
+            "9",
+            "--adaptive",
+        ],
+        &out,
+        Some(&stats),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+    let records = v["subscreens"].as_array().unwrap();
+    let sum = |key: &str| {
+        records
+            .iter()
+            .map(|r| r[key].as_u64().unwrap())
+            .sum::<u64>()
+    };
+    assert_eq!(sum("pixels"), w * h, "every pixel in exactly one record");
+    assert_eq!(sum("rays"), v["rays"]["total"].as_u64().unwrap());
+    assert_eq!(sum("samples"), v["samples"].as_u64().unwrap());
+    let t = &v["totals"];
+    assert_eq!(
+        sum("fetched_bytes"),
+        t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap()
+    );
+    assert_eq!(sum("fetches"), t["cache_misses"].as_u64().unwrap());
+    let chunk_count = v["chunk_bytes"].as_array().unwrap().len();
+    assert_eq!(chunk_count as u64, v["chunks"].as_u64().unwrap());
+    let render_s = v["seconds"]["render"].as_f64().unwrap();
+    for r in records {
+        let (pixels, width, height) = (
+            r["pixels"].as_u64().unwrap(),
+            r["width"].as_u64().unwrap(),
+            r["height"].as_u64().unwrap(),
+        );
+        assert_eq!(pixels, width * height, "{r}");
+        let (start, end) = (r["start_s"].as_f64().unwrap(), r["end_s"].as_f64().unwrap());
+        assert!(0.0 <= start && start <= end && end <= render_s + 0.5, "{r}");
+        assert!(r["cpu_s"].as_f64().unwrap() > 0.0, "{r}");
+        let chunks = r["chunks"].as_array().unwrap();
+        // More rays than camera rays: some ray hit a surface, so its chunk was touched.
+        if r["rays"].as_u64().unwrap() > r["samples"].as_u64().unwrap() {
+            assert!(!chunks.is_empty(), "{r}");
+        }
+        assert!(
+            chunks
+                .iter()
+                .all(|c| (c.as_u64().unwrap() as usize) < chunk_count)
+        );
+        let via = r["fetched_via"].as_str().unwrap();
+        match r["fetches"].as_u64().unwrap() {
+            0 => assert_eq!(via, "none"),
+            _ => assert_eq!(via, "dma"),
+        }
+        let node = r["node"].as_u64().unwrap();
+        assert!(
+            v["nodes"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|n| n["node"] == node && n["role"] == "Render"),
+            "{r}"
+        );
+    }
+    assert!(
+        records.iter().any(|r| r["fetches"].as_u64().unwrap() > 0),
+        "a 40% cache starts empty: someone fetched"
+    );
+
+    let plots = dir.join("plots");
+    let o = run(host().arg("plot").arg(&stats).arg("-o").arg(&plots));
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in ["s.timeline.png", "s.nodes.png"] {
+        let png = std::fs::read(plots.join(f)).unwrap();
+        assert!(png.starts_with(b"\x89PNG"), "{f}");
+    }
+}
+
 #[test]
 fn a_cache_smaller_than_a_chunk_is_a_clear_error() {
     let dir = scratch("tiny-cache");

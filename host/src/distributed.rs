@@ -28,7 +28,7 @@ use crate::{
     inprocess::{RenderConfig, RenderError, check_settings},
     progress::Progress,
     schedule::{self, Action, Answer, Request, Scheduler},
-    stats::RenderStats,
+    stats::{FetchedVia, RenderStats, SubscreenRecord},
 };
 
 #[derive(Clone, Debug)]
@@ -121,7 +121,12 @@ pub struct ClusterStats {
     pub shared_memory_nodes: usize,
     pub cache_percent: f64,
     pub cache_bytes: u64,
-    pub subscreens: u32,
+    /// How demand fetches travel (`Dma` or `Serial`); batch transfers do not fetch.
+    pub demand_via: String,
+    /// Rendering threads on each render node.
+    pub render_threads: u32,
+    /// Subscreens planned (the records in `subscreens` also count the pieces split off).
+    pub subscreen_count: u32,
     pub subscreens_split: u32,
     pub adaptive: bool,
     pub order: schedule::Order,
@@ -375,6 +380,7 @@ async fn drive(
             plan: &plan,
             subscreens: frame.scheduler.planned(),
             subscreens_split: frame.scheduler.split(),
+            times: std::mem::take(&mut frame.times),
             nodes,
             lost_nodes: faults.lost,
             seconds,
@@ -572,6 +578,7 @@ struct Rendering {
     checkpoint_failed: bool,
     /// The frames of requests for work not answered yet, to answer them by.
     requests: HashMap<Request, Frame>,
+    times: SubscreenTimes,
     progress: Progress,
     f: fabric::Fabric,
 }
@@ -622,6 +629,10 @@ impl Rendering {
             last_checkpoint: now,
             checkpoint_failed: false,
             requests: HashMap::new(),
+            times: SubscreenTimes {
+                began: Some(now),
+                ..SubscreenTimes::default()
+            },
             progress: Progress::new(total, config.render.progress),
             f,
         }
@@ -722,6 +733,7 @@ impl Rendering {
                 y,
                 width,
             } if matches!(via, Via::Direct(_)) && frame.data.len() == width as usize * 3 => {
+                self.times.pixels_in(subscreen);
                 let actions = self.scheduler.pixels(subscreen, x, y, width);
                 let run = Run {
                     x,
@@ -783,7 +795,10 @@ impl Rendering {
             return;
         };
         let message = match answer {
-            Answer::Subscreen { id, rect } => Message::Subscreen { id, rect },
+            Answer::Subscreen { id, rect } => {
+                self.times.handed_out(request.node, id);
+                Message::Subscreen { id, rect }
+            }
             Answer::NoMoreWork => Message::NoMoreWork,
         };
         let _ = self
@@ -814,6 +829,75 @@ impl Rendering {
     fn finish(&mut self, faults: &mut Faults) {
         let actions = self.scheduler.finish();
         self.perform(actions, None, faults);
+    }
+}
+
+/// When, by the host's clock, each subscreen went out and its pixels came in: the times of
+/// the per-subscreen records, whose costs the render nodes report at the end.
+#[derive(Default)]
+struct SubscreenTimes {
+    began: Option<Instant>,
+    /// Seconds since `began` each (render node, subscreen) was first handed out.
+    out: HashMap<(NodeId, u32), f64>,
+    /// Seconds since `began` the last pixels of each subscreen arrived.
+    last_in: HashMap<u32, f64>,
+}
+
+impl SubscreenTimes {
+    fn now(&self) -> f64 {
+        self.began.map_or(0.0, |b| b.elapsed().as_secs_f64())
+    }
+
+    fn handed_out(&mut self, node: NodeId, subscreen: u32) {
+        let now = self.now();
+        // A request sent twice is answered twice with the same subscreen: the first counts.
+        self.out.entry((node, subscreen)).or_insert(now);
+    }
+
+    fn pixels_in(&mut self, subscreen: u32) {
+        let now = self.now();
+        self.last_in.insert(subscreen, now);
+    }
+
+    /// Every render node's subscreens, with their times, ordered by when they ended.
+    fn records(&self, nodes: &[NodeStats], job: &JobSpec) -> Vec<SubscreenRecord> {
+        let mut records: Vec<SubscreenRecord> = nodes
+            .iter()
+            .flat_map(|n| n.records.iter().map(move |w| (n.node, w)))
+            .map(|(node, w)| {
+                let start_s = self.out.get(&(node, w.subscreen)).copied().unwrap_or(0.0);
+                SubscreenRecord {
+                    node: node as u32,
+                    x: w.rect.x,
+                    y: w.rect.y,
+                    width: w.rect.width,
+                    height: w.rect.height,
+                    start_s,
+                    end_s: self
+                        .last_in
+                        .get(&w.subscreen)
+                        .copied()
+                        .unwrap_or(start_s)
+                        .max(start_s),
+                    cpu_s: w.cpu_s,
+                    pixels: w.pixels,
+                    samples: w.samples,
+                    rays: w.rays,
+                    chunks: w.chunks.clone(),
+                    tiles: w.tiles.clone(),
+                    fetched_bytes: w.fetched_bytes,
+                    fetches: w.fetches,
+                    fetched_via: match (job.transfer, job.demand_via) {
+                        (TransferMode::Batch, _) => FetchedVia::Batch,
+                        _ if w.fetches == 0 => FetchedVia::None,
+                        (TransferMode::Demand, Transfer::Dma) => FetchedVia::Dma,
+                        (TransferMode::Demand, Transfer::Serial) => FetchedVia::Mesh,
+                    },
+                }
+            })
+            .collect();
+        records.sort_by(|a, b| a.end_s.total_cmp(&b.end_s).then(a.node.cmp(&b.node)));
+        records
     }
 }
 
@@ -904,6 +988,7 @@ struct Finished<'a> {
     plan: &'a JobPlan,
     subscreens: u32,
     subscreens_split: u32,
+    times: SubscreenTimes,
     nodes: Vec<NodeStats>,
     lost_nodes: Vec<LostNode>,
     seconds: crate::stats::Seconds,
@@ -935,6 +1020,9 @@ fn cluster_stats(
         shape_bytes: done.scene.shape_bytes,
         texture_tiles: done.scene.tile_count,
         seconds: done.seconds,
+        subscreens: done.times.records(&done.nodes, &done.plan.job),
+        chunk_bytes: crate::stats::chunk_bytes(done.scene),
+        tile_bytes: crate::stats::tile_bytes(done.scene),
         ..Default::default()
     };
     render.samples = totals.samples;
@@ -969,7 +1057,9 @@ fn cluster_stats(
             .count(),
         cache_percent: config.cache_percent,
         cache_bytes: done.plan.job.cache_bytes,
-        subscreens: done.subscreens,
+        demand_via: format!("{:?}", config.demand_via),
+        render_threads: config.render_threads,
+        subscreen_count: done.subscreens,
         subscreens_split: done.subscreens_split,
         adaptive: config.adaptive,
         order: config.order,

@@ -3,17 +3,24 @@
 
 use std::{
     path::PathBuf,
-    sync::{Mutex, atomic::AtomicBool},
-    time::Instant,
+    sync::{
+        Mutex,
+        atomic::{AtomicBool, AtomicU64, Ordering},
+    },
+    time::{Duration, Instant},
 };
 
-use renderer::{DataError, PrepareOptions, RenderSettings, render};
+use fabric::clock::thread_cpu_time;
+use renderer::{
+    DataError, PrepareOptions, RenderSettings,
+    render::{self, RectDone, RectWatch},
+};
 
 use crate::{
     checkpoint::{self, Checkpoint, CheckpointError, CheckpointKey},
     progress::Progress,
     scene_source::{SceneSource, read_scene},
-    stats::RenderStats,
+    stats::{self, RenderStats, SubscreenRecord},
 };
 
 #[derive(Clone, Debug)]
@@ -176,6 +183,67 @@ impl Keeper {
     }
 }
 
+/// What the rendering threads report as they go: finished tiles into the checkpoint and the
+/// progress bar, and a record of each tile's cost for the stats.
+struct Watch<'a> {
+    keeper: &'a Mutex<Keeper>,
+    progress: Progress,
+    done: AtomicU64,
+    total: u64,
+    /// When rendering began: records' times count from it.
+    began: Instant,
+    /// Per thread: when its current tile began (seconds since `began`) and its CPU time then.
+    starts: Mutex<Vec<(f64, Duration)>>,
+    records: Mutex<Vec<SubscreenRecord>>,
+}
+
+impl RectWatch for Watch<'_> {
+    fn begin(&self, thread: usize, _rect: renderer::Rect) {
+        let start = (self.began.elapsed().as_secs_f64(), thread_cpu_time());
+        if let Some(s) = self.starts.lock().expect("starts lock").get_mut(thread) {
+            *s = start;
+        }
+    }
+
+    fn finished(&self, done: RectDone<'_>) {
+        let (end_s, cpu) = (self.began.elapsed().as_secs_f64(), thread_cpu_time());
+        let (start_s, cpu0) = self
+            .starts
+            .lock()
+            .expect("starts lock")
+            .get(done.thread)
+            .copied()
+            .unwrap_or_default();
+        let rect = done.rect;
+        self.records
+            .lock()
+            .expect("records lock")
+            .push(SubscreenRecord {
+                node: done.thread as u32,
+                x: rect.x,
+                y: rect.y,
+                width: rect.width,
+                height: rect.height,
+                start_s,
+                end_s,
+                cpu_s: cpu.saturating_sub(cpu0).as_secs_f64(),
+                pixels: done.trace.pixels,
+                samples: done.trace.samples,
+                rays: done.trace.rays(),
+                chunks: done.chunks,
+                tiles: done.tiles,
+                ..Default::default()
+            });
+        self.keeper
+            .lock()
+            .expect("checkpoint lock")
+            .take(rect, done.pixels);
+        let n = rect.pixel_count() as u64;
+        self.progress
+            .update(self.done.fetch_add(n, Ordering::Relaxed) + n, self.total);
+    }
+}
+
 /// A scene read and prepared, with the settings and camera it will be rendered with.
 struct Prepared {
     scene: renderer::SceneHeader,
@@ -271,9 +339,16 @@ pub fn render_in_process_until(
         interval: config.checkpoint_interval,
         failed: None,
     });
-    let progress = Progress::new(total, config.progress);
-    let done = std::sync::atomic::AtomicU64::new(already);
     let t1 = Instant::now();
+    let watch = Watch {
+        keeper: &keeper,
+        progress: Progress::new(total, config.progress),
+        done: AtomicU64::new(already),
+        total,
+        began: t1,
+        starts: Mutex::new(vec![(0.0, Duration::ZERO); config.threads.max(1)]),
+        records: Mutex::new(Vec::new()),
+    };
     let rendered = render::render_rects(
         &scene,
         &data,
@@ -283,15 +358,11 @@ pub fn render_in_process_until(
         &rects,
         image,
         cancel,
-        &|rect, pixels| {
-            keeper.lock().expect("checkpoint lock").take(rect, pixels);
-            let n = rect.pixel_count() as u64;
-            progress.update(
-                done.fetch_add(n, std::sync::atomic::Ordering::Relaxed) + n,
-                total,
-            );
-        },
+        &watch,
     );
+    let Watch {
+        progress, records, ..
+    } = watch;
     progress.finish();
     let (image, trace) = rendered.map_err(|e| keeper.into_inner().expect("lock").ended_early(e))?;
     let render_s = t1.elapsed().as_secs_f64();
@@ -318,6 +389,9 @@ pub fn render_in_process_until(
         chunks: scene.chunks.len(),
         shape_bytes: scene.shape_bytes,
         texture_tiles: scene.tile_count,
+        subscreens: records.into_inner().expect("records lock"),
+        chunk_bytes: stats::chunk_bytes(&scene),
+        tile_bytes: stats::tile_bytes(&scene),
         ..Default::default()
     };
     stats.seconds.load = load_s;

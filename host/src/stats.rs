@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use renderer::trace::TraceStats;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, Serialize, Default)]
 pub struct Seconds {
@@ -45,6 +45,66 @@ pub struct RenderStats {
     pub bad_samples: u64,
     /// Peak resident memory of this process, in bytes.
     pub peak_rss_bytes: u64,
+    /// What each subscreen cost (in one process: each tile), in the order they finished:
+    /// what a simulator replays to predict renders on more nodes than this machine has.
+    pub subscreens: Vec<SubscreenRecord>,
+    /// Bytes of every chunk and of every texture tile, by id, the sizes behind
+    /// [`SubscreenRecord::chunks`] and [`SubscreenRecord::tiles`].
+    pub chunk_bytes: Vec<u64>,
+    pub tile_bytes: Vec<u64>,
+}
+
+/// How the data a subscreen's rays needed reached the render node.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FetchedVia {
+    /// Fetched on demand by DMA from the fork node's card.
+    Dma,
+    /// Fetched on demand through the mesh (serial links).
+    Mesh,
+    /// Everything was sent before rendering began.
+    Batch,
+    /// Nothing fetched: all of it was at hand (in one process, or every item a cache hit).
+    #[default]
+    None,
+}
+
+/// One subscreen rendered: where, by whom, when, and what it cost.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SubscreenRecord {
+    /// Render node id; in one process, the index of the thread.
+    pub node: u32,
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+    /// Seconds since rendering began, by the host's clock: handed out, and its last pixels
+    /// in (in one process: begun and finished).
+    pub start_s: f64,
+    pub end_s: f64,
+    /// CPU time the rendering thread spent on it (its thread CPU clock).
+    pub cpu_s: f64,
+    pub pixels: u64,
+    pub samples: u64,
+    pub rays: u64,
+    /// Ids of the chunks and texture tiles its rays touched, ascending.
+    pub chunks: Vec<u32>,
+    pub tiles: Vec<u32>,
+    /// What the render node fetched for it (cache misses), and how.
+    pub fetched_bytes: u64,
+    pub fetches: u32,
+    pub fetched_via: FetchedVia,
+}
+
+/// Bytes of every chunk by id, from the header every render has.
+pub fn chunk_bytes(scene: &renderer::SceneHeader) -> Vec<u64> {
+    scene.chunks.iter().map(|c| c.byte_len as u64).collect()
+}
+
+/// Bytes of every texture tile by id (all tiles are the same size).
+pub fn tile_bytes(scene: &renderer::SceneHeader) -> Vec<u64> {
+    let bytes = renderer::texture::TILE_TEXELS as u64 * 4;
+    vec![bytes; scene.tile_count as usize]
 }
 
 impl RenderStats {

@@ -82,7 +82,7 @@ fn summarise(name: &str, adaptive: bool, stats: &serde_json::Value, identical: b
     let max_busy = nodes.iter().map(|n| n.busy_s).fold(0.0, f64::max);
     BalanceRun {
         name: name.to_string(),
-        subscreens: stats["subscreens"].as_u64().unwrap_or(0),
+        subscreens: stats["subscreen_count"].as_u64().unwrap_or(0),
         adaptive,
         wall_s: stats["seconds"]["total"].as_f64().unwrap_or(f64::NAN),
         render_s: stats["seconds"]["render"].as_f64().unwrap_or(f64::NAN),
@@ -317,7 +317,7 @@ mod tests {
                 serde_json::json!({"node": 1, "role": "Fork", "busy_s": 9.0}),
             ))
             .collect();
-        serde_json::json!({"nodes": nodes, "subscreens": idle.len(), "seconds": {"total": 2.0, "render": 2.0}})
+        serde_json::json!({"nodes": nodes, "subscreen_count": idle.len(), "seconds": {"total": 2.0, "render": 2.0}})
     }
 
     #[test]

@@ -1,9 +1,10 @@
 //! The lab: what measures magg rather than runs it. Benchmarks (`bench`, `raybench`,
-//! `whittedbench`), the paper's experiments (`experiment`, `runs`), the simulator run on a
-//! render's stats (`simulate`), the gallery of shared scenes, plots and image comparison.
-//! It stands apart from the roles so that the host, fork node and render node libraries
-//! carry only what a cluster needs; it uses them the way a user would (whole renders, real
-//! clusters, the render node's cache).
+//! `whittedbench`), the paper's experiments (`experiment`, `runs`, `balance`,
+//! `convergence`), the simulator run on a render's stats (`simulate`), the gallery of shared
+//! scenes, plots (`plot`; `timeline` draws one render from its stats' records) and image
+//! comparison. It stands apart from the roles so that the host, fork node and render node
+//! libraries carry only what a cluster needs; it uses them the way a user would (whole
+//! renders, real clusters, the render node's cache).
 
 pub mod balance;
 pub mod bench;
@@ -15,6 +16,7 @@ pub mod plot;
 pub mod raybench;
 pub mod runs;
 pub mod simulate;
+pub mod timeline;
 pub mod whittedbench;
 
 /// Why a lab command (bench, gallery, plots) could not finish.
@@ -46,6 +48,12 @@ pub enum LabError {
     Folder {
         path: std::path::PathBuf,
         source: std::io::Error,
+    },
+    /// A `--stats` file that cannot be plotted, and why.
+    #[error("{path}: {reason}")]
+    Stats {
+        path: std::path::PathBuf,
+        reason: String,
     },
     #[error("{0}: no .gltf or .glb files")]
     NoScenes(std::path::PathBuf),

@@ -1,9 +1,9 @@
 //! Plots of experiment results as PNG files.
 //!
-//! Text needs a font: the file named by `MAGG_FONT`, else the one fontconfig (`fc-match`)
-//! picks for sans-serif, else the first of a few common DejaVu paths (Debian, Arch, Fedora).
-//! Without one, the plot is drawn without labels and says so in the log; the CSV next to it
-//! holds the numbers either way.
+//! Text is drawn with DejaVu Sans, built into the binary (`lab/fonts/`, Bitstream Vera
+//! licence beside it), so plots have their labels wherever the binary runs, the `FROM
+//! scratch` container image included, which has no fonts. `MAGG_FONT` names another
+//! TrueType file to use instead.
 
 use std::{path::Path, sync::OnceLock};
 
@@ -11,50 +11,41 @@ use plotters::prelude::*;
 
 use crate::experiment::LinksReport;
 
-const FONT_FILES: &[&str] = &[
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-];
+/// The font every label is drawn in unless `MAGG_FONT` names another.
+pub const EMBEDDED_FONT: &[u8] = include_bytes!("../fonts/DejaVuSans.ttf");
 
 static HAVE_FONT: OnceLock<bool> = OnceLock::new();
 
-/// Font files to try, most specific first.
-fn font_candidates() -> Vec<std::path::PathBuf> {
-    let mut files: Vec<std::path::PathBuf> = std::env::var_os("MAGG_FONT")
-        .into_iter()
-        .map(Into::into)
-        .collect();
-    // fontconfig knows the machine's fonts wherever its distribution keeps them.
-    if let Ok(o) = std::process::Command::new("fc-match")
-        .args(["--format=%{file}", "sans-serif:style=Regular"])
-        .output()
-        && o.status.success()
-        && let Ok(path) = String::from_utf8(o.stdout)
-        && (path.ends_with(".ttf") || path.ends_with(".otf"))
-    {
-        files.push(path.into());
-    }
-    files.extend(FONT_FILES.iter().map(Into::into));
-    files
-}
-
-/// Registers a font for text, once; false when the machine has none.
+/// Registers the font for text, once: `MAGG_FONT` if it names a usable TrueType file, else
+/// the embedded one. False only if neither registers (plots are then drawn without labels).
 pub fn ensure_font() -> bool {
     *HAVE_FONT.get_or_init(|| {
-        for f in font_candidates() {
-            if let Ok(bytes) = std::fs::read(&f) {
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
-                    return true;
+        if let Some(path) = std::env::var_os("MAGG_FONT") {
+            match std::fs::read(&path) {
+                Ok(bytes) => {
+                    let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+                    if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
+                        .is_ok()
+                    {
+                        return true;
+                    }
+                    tracing::warn!(
+                        "MAGG_FONT={}: not a TrueType font; using the built-in one",
+                        Path::new(&path).display()
+                    );
                 }
+                Err(e) => tracing::warn!(
+                    "MAGG_FONT={}: {e}; using the built-in font",
+                    Path::new(&path).display()
+                ),
             }
         }
-        tracing::warn!(
-            "no TrueType font found ({}); plots have no labels",
-            FONT_FILES.join(", ")
-        );
-        false
+        let ok =
+            plotters::style::register_font("sans-serif", FontStyle::Normal, EMBEDDED_FONT).is_ok();
+        if !ok {
+            tracing::warn!("the built-in font did not load; plots have no labels");
+        }
+        ok
     })
 }
 

@@ -350,6 +350,28 @@ pub struct NodeStats {
     pub waiting_s: f64,
     pub idle_s: f64,
     pub peak_rss_bytes: u64,
+    /// Render nodes: what each subscreen they rendered cost, in the order they finished.
+    pub records: Vec<SubscreenWork>,
+}
+
+/// What one subscreen cost a render node, which the host joins with the times it handed the
+/// subscreen out and received its pixels into the stats' per-subscreen records.
+#[derive(Clone, Debug, PartialEq, Default, Serialize, Deserialize)]
+pub struct SubscreenWork {
+    pub subscreen: u32,
+    /// The rows it rendered: fewer than handed out when it gave the tail back.
+    pub rect: Rect,
+    /// CPU time of the rendering thread on it.
+    pub cpu_s: f64,
+    pub pixels: u64,
+    pub samples: u64,
+    pub rays: u64,
+    /// Ids of the chunks and texture tiles its rays touched, ascending.
+    pub chunks: Vec<u32>,
+    pub tiles: Vec<u32>,
+    /// What the cache fetched for it (misses).
+    pub fetched_bytes: u64,
+    pub fetches: u32,
 }
 
 /// Bytes carried in a frame's data part (whose length is counted in words).

@@ -169,6 +169,8 @@ impl DemandCache {
             announced,
             now: Cell::new(self.clock.load(Ordering::Relaxed)),
             hits: Cell::new(0),
+            fetches: Cell::new(0),
+            fetched_bytes: Cell::new(0),
         }
     }
 
@@ -479,6 +481,9 @@ pub struct Reader<'c> {
     now: Cell<u64>,
     /// Hits not yet added to the shared counter.
     hits: Cell<u64>,
+    /// Misses this thread fetched, and their bytes, since [`Reader::take_fetched`].
+    fetches: Cell<u32>,
+    fetched_bytes: Cell<u64>,
 }
 
 impl Reader<'_> {
@@ -488,6 +493,18 @@ impl Reader<'_> {
         self.flush();
         self.announced
             .store(self.cache.epoch.load(Ordering::SeqCst), Ordering::SeqCst);
+    }
+
+    /// How many items this thread fetched, and their bytes, since it last asked.
+    pub fn take_fetched(&self) -> (u32, u64) {
+        (self.fetches.replace(0), self.fetched_bytes.replace(0))
+    }
+
+    /// Counts a miss this thread waited for (the miss path only; a hit is not slowed).
+    fn fetched(&self, words: &[u32]) {
+        self.fetches.set(self.fetches.get() + 1);
+        self.fetched_bytes
+            .set(self.fetched_bytes.get() + words.len() as u64 * 4);
     }
 
     /// Advances the recency clock: rendering threads call it once per pixel, so recency is
@@ -548,6 +565,7 @@ impl SceneData for Reader<'_> {
             return Ok(self.hit(slot, p));
         }
         let words = self.cache.fetch(DataId::Chunk(id))?;
+        self.fetched(&words);
         let chunk = validate_chunk(&self.cache.rules, id, words)?;
         let bytes = chunk.byte_len() as u64;
         let p = self
@@ -569,6 +587,7 @@ impl SceneData for Reader<'_> {
             return Ok(self.hit(slot, p));
         }
         let words = self.cache.fetch(DataId::Tile(id))?;
+        self.fetched(&words);
         let tile = Tile::from_words(words)?;
         let bytes = tile.as_bytes().len() as u64;
         let p = self

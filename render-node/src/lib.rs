@@ -258,6 +258,7 @@ fn node_stats(
         waiting_s: wait as f64 * 1e-9,
         idle_s: g(&w.idle_ns) as f64 * 1e-9,
         peak_rss_bytes: fabric::peak_rss_bytes(),
+        records: w.records.lock().expect("records lock").clone(),
         ..NodeStats::default()
     }
 }

@@ -12,8 +12,10 @@ use std::{
 };
 
 use fabric::{Fabric, Route};
-use protocol::{JobSpec, Message, NodeId, Rect};
-use renderer::{SceneHeader, render::render_pixel, trace::Tracer};
+use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
+use renderer::{
+    SceneHeader, render::render_pixel, source::Touched, trace::TraceStats, trace::Tracer,
+};
 
 use crate::cache::{DemandCache, Reader};
 
@@ -82,6 +84,9 @@ pub struct WorkStats {
     pub bad_samples: AtomicU64,
     pub render_ns: AtomicU64,
     pub idle_ns: AtomicU64,
+    /// What each subscreen cost, for the host's per-subscreen records (one push per
+    /// subscreen, never per pixel).
+    pub records: Mutex<Vec<SubscreenWork>>,
 }
 
 pub type ActiveMap = Arc<Mutex<HashMap<u32, Arc<Active>>>>;
@@ -105,7 +110,8 @@ impl Worker {
     /// Renders subscreens until the host has no more; returns an error message on failure.
     pub fn run(&self) -> Result<(), WorkerError> {
         let mut reader = self.cache.reader();
-        let mut trace_stats = renderer::trace::TraceStats::default();
+        let touched = Touched::new(self.scene.chunks.len(), self.scene.tile_count as usize);
+        let mut trace_stats = TraceStats::default();
         let mut finished = None;
         loop {
             let t0 = Instant::now();
@@ -141,9 +147,18 @@ impl Worker {
                 .lock()
                 .expect("active lock")
                 .insert(id, active.clone());
-            let result = self.render_subscreen(&mut reader, id, &active, &mut trace_stats);
+            let cpu0 = fabric::clock::thread_cpu_time();
+            let before = trace_stats;
+            let result =
+                self.render_subscreen(&mut reader, &touched, id, &active, &mut trace_stats);
             self.active.lock().expect("active lock").remove(&id);
             result.map_err(|source| WorkerError::Render { id, source })?;
+            let record = record(id, rect, &before, &trace_stats, &reader, &touched, cpu0);
+            self.stats
+                .records
+                .lock()
+                .expect("records lock")
+                .push(record);
             self.stats
                 .render_ns
                 .fetch_add(t1.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -170,6 +185,7 @@ impl Worker {
     fn render_subscreen(
         &self,
         reader: &mut Reader,
+        touched: &Touched,
         id: u32,
         active: &Active,
         trace_stats: &mut renderer::trace::TraceStats,
@@ -187,7 +203,8 @@ impl Worker {
             // Between scan lines this thread holds nothing of the cache: evicted data it
             // used may be freed.
             reader.refresh();
-            let tracer = Tracer::new(&self.scene, &*reader);
+            let data = touched.watching(&*reader);
+            let tracer = Tracer::new(&self.scene, &data);
             for x in rect.x..rect.x + rect.width {
                 reader.tick();
                 let px = render_pixel(&tracer, &self.job.camera, settings, x, y, trace_stats)?;
@@ -210,6 +227,40 @@ impl Worker {
                 .pixels
                 .fetch_add(rect.width as u64, Ordering::Relaxed);
         }
+    }
+}
+
+/// What subscreen `id` cost this thread: the counts since `before`, the ids its rays touched,
+/// what it fetched, and the thread's CPU time since `cpu0`.
+fn record(
+    id: u32,
+    rect: Rect,
+    before: &TraceStats,
+    after: &TraceStats,
+    reader: &Reader,
+    touched: &Touched,
+    cpu0: Duration,
+) -> SubscreenWork {
+    let pixels = after.pixels - before.pixels;
+    let (chunks, tiles) = touched.take();
+    let (fetches, fetched_bytes) = reader.take_fetched();
+    SubscreenWork {
+        subscreen: id,
+        // Rows are rendered in order from the top, so what was rendered is a prefix.
+        rect: Rect {
+            height: (pixels / rect.width.max(1) as u64) as u32,
+            ..rect
+        },
+        cpu_s: fabric::clock::thread_cpu_time()
+            .saturating_sub(cpu0)
+            .as_secs_f64(),
+        pixels,
+        samples: after.samples - before.samples,
+        rays: after.rays() - before.rays(),
+        chunks,
+        tiles,
+        fetched_bytes,
+        fetches,
     }
 }
 

@@ -16,7 +16,7 @@ use crate::{
     math::luminance,
     sampler::Sampler,
     scene::SceneHeader,
-    source::{DataError, SceneData},
+    source::{DataError, SceneData, Touched},
     trace::{TraceStats, Tracer},
 };
 
@@ -58,7 +58,7 @@ impl Default for RenderSettings {
 }
 
 /// A rectangle of pixels, (x, y) its top-left corner.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Rect {
     pub x: u32,
     pub y: u32,
@@ -264,7 +264,6 @@ pub fn render_image<D: SceneData + Sync>(
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<(Image, TraceStats), DataError> {
     let rects = tiles(settings.width, settings.height, tile_size);
-    let done = AtomicUsize::new(0);
     let total = settings.width as u64 * settings.height as u64;
     render_rects(
         scene,
@@ -275,15 +274,53 @@ pub fn render_image<D: SceneData + Sync>(
         &rects,
         Image::new(settings.width, settings.height),
         cancel,
-        &|rect, _| {
-            let d = done.fetch_add(rect.pixel_count(), Ordering::Relaxed) + rect.pixel_count();
-            progress(d as u64, total);
+        &Progressing {
+            done: AtomicUsize::new(0),
+            total,
+            progress,
         },
     )
 }
 
-/// Renders `rects` into `image` (whose other pixels are kept) on `threads` threads, and
-/// calls `finished(rect, pixels)` as each rectangle is done, from the thread that did it.
+/// [`render_image`]'s watch: counts finished pixels for its progress callback.
+struct Progressing<'a> {
+    done: AtomicUsize,
+    total: u64,
+    progress: &'a (dyn Fn(u64, u64) + Sync),
+}
+
+impl RectWatch for Progressing<'_> {
+    fn finished(&self, done: RectDone<'_>) {
+        let n = done.rect.pixel_count();
+        let d = self.done.fetch_add(n, Ordering::Relaxed) + n;
+        (self.progress)(d as u64, self.total);
+    }
+}
+
+/// What a rendering thread did for one rectangle.
+pub struct RectDone<'a> {
+    pub rect: Rect,
+    /// Which of the threads rendered it (`0..threads`).
+    pub thread: usize,
+    /// Its pixels, row-major within the rectangle.
+    pub pixels: &'a [[f32; 3]],
+    pub trace: TraceStats,
+    /// Ids of the chunks and of the texture tiles its rays touched, ascending.
+    pub chunks: Vec<u32>,
+    pub tiles: Vec<u32>,
+}
+
+/// What [`render_rects`] tells as it goes. Both calls come from the rendering thread
+/// itself, so that thread's own clocks (its CPU time) can be read around each rectangle.
+pub trait RectWatch: Sync {
+    /// `thread` is about to begin `rect`.
+    fn begin(&self, _thread: usize, _rect: Rect) {}
+    /// A rectangle is finished and already in the image.
+    fn finished(&self, done: RectDone<'_>);
+}
+
+/// Renders `rects` into `image` (whose other pixels are kept) on `threads` threads, telling
+/// `watch` as each rectangle begins and ends, from the thread that renders it.
 #[allow(clippy::too_many_arguments)]
 pub fn render_rects<D: SceneData + Sync>(
     scene: &SceneHeader,
@@ -294,7 +331,7 @@ pub fn render_rects<D: SceneData + Sync>(
     rects: &[Rect],
     image: Image,
     cancel: &AtomicBool,
-    finished: &(dyn Fn(Rect, &[[f32; 3]]) + Sync),
+    watch: &dyn RectWatch,
 ) -> Result<(Image, TraceStats), DataError> {
     let next = AtomicUsize::new(0);
     let image = Mutex::new(image);
@@ -302,9 +339,13 @@ pub fn render_rects<D: SceneData + Sync>(
     let error: Mutex<Option<DataError>> = Mutex::new(None);
     let local_cancel = AtomicBool::new(false);
     std::thread::scope(|s| {
-        for _ in 0..threads.max(1) {
-            s.spawn(|| {
+        for thread in 0..threads.max(1) {
+            let (next, image, stats, error, local_cancel) =
+                (&next, &image, &stats, &error, &local_cancel);
+            s.spawn(move || {
                 let mut buf = Vec::new();
+                let touched = Touched::new(scene.chunks.len(), scene.tile_count as usize);
+                let data = touched.watching(data);
                 loop {
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(&rect) = rects.get(i) else { break };
@@ -313,11 +354,20 @@ pub fn render_rects<D: SceneData + Sync>(
                     }
                     buf.clear();
                     buf.resize(rect.pixel_count(), [0.0; 3]);
-                    match render_rect(scene, data, camera, settings, rect, &mut buf, cancel) {
+                    watch.begin(thread, rect);
+                    match render_rect(scene, &data, camera, settings, rect, &mut buf, cancel) {
                         Ok(st) => {
                             image.lock().expect("image lock").put_rect(rect, &buf);
                             stats.lock().expect("stats lock").add(&st);
-                            finished(rect, &buf);
+                            let (chunks, tiles) = touched.take();
+                            watch.finished(RectDone {
+                                rect,
+                                thread,
+                                pixels: &buf,
+                                trace: st,
+                                chunks,
+                                tiles,
+                            });
                         }
                         Err(e) => {
                             error.lock().expect("error lock").get_or_insert(e);

@@ -5,7 +5,7 @@
 //! fetches what is missing from the fork node's shared memory. The renderer cannot tell the
 //! two apart, which is why an image is the same bytes either way.
 
-use std::ops::Deref;
+use std::{cell::Cell, ops::Deref};
 
 use crate::{chunk::Chunk, texture::Tile};
 
@@ -68,5 +68,110 @@ impl SceneData for MemoryData {
     #[inline]
     fn tile(&self, id: u32) -> Result<&Tile, DataError> {
         self.tiles.get(id as usize).ok_or(DataError::NoTile(id))
+    }
+}
+
+/// Which chunks and texture tiles one thread's rays have touched since it last asked: the
+/// per-subscreen records that let a simulator replay a render's data traffic. One bit per
+/// id in this thread's own memory, so noting a visit costs an OR, never a lock, an atomic
+/// or an allocation.
+#[derive(Debug, Default)]
+pub struct Touched {
+    chunks: Box<[Cell<u64>]>,
+    tiles: Box<[Cell<u64>]>,
+}
+
+impl Touched {
+    pub fn new(chunks: usize, tiles: usize) -> Touched {
+        let words = |n: usize| (0..n.div_ceil(64)).map(|_| Cell::new(0)).collect();
+        Touched {
+            chunks: words(chunks),
+            tiles: words(tiles),
+        }
+    }
+
+    #[inline(always)]
+    fn note(bits: &[Cell<u64>], id: u32) {
+        // An id past the end is refused by the data itself; it is not worth noting.
+        if let Some(w) = bits.get((id >> 6) as usize) {
+            w.set(w.get() | 1 << (id & 63));
+        }
+    }
+
+    fn drain(bits: &[Cell<u64>]) -> Vec<u32> {
+        let mut ids = Vec::new();
+        for (i, w) in bits.iter().enumerate() {
+            let mut b = w.replace(0);
+            while b != 0 {
+                ids.push(i as u32 * 64 + b.trailing_zeros());
+                b &= b - 1;
+            }
+        }
+        ids
+    }
+
+    /// The chunk ids and tile ids touched since the last call (ascending), and starts over.
+    pub fn take(&self) -> (Vec<u32>, Vec<u32>) {
+        (Self::drain(&self.chunks), Self::drain(&self.tiles))
+    }
+
+    /// A view of `data` that notes every chunk and tile asked for here.
+    pub fn watching<'a, D: SceneData>(&'a self, data: &'a D) -> Noting<'a, D> {
+        Noting {
+            data,
+            touched: self,
+        }
+    }
+}
+
+/// [`SceneData`] that passes every request on and notes its id in a [`Touched`].
+pub struct Noting<'a, D> {
+    data: &'a D,
+    touched: &'a Touched,
+}
+
+impl<D: SceneData> SceneData for Noting<'_, D> {
+    type ChunkRef<'b>
+        = D::ChunkRef<'b>
+    where
+        Self: 'b;
+    type TileRef<'b>
+        = D::TileRef<'b>
+    where
+        Self: 'b;
+
+    #[inline(always)]
+    fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError> {
+        Touched::note(&self.touched.chunks, id);
+        self.data.chunk(id)
+    }
+
+    #[inline(always)]
+    fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError> {
+        Touched::note(&self.touched.tiles, id);
+        self.data.tile(id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn touched_ids_come_back_once_each_and_then_start_over() {
+        let data = MemoryData::default();
+        let touched = Touched::new(130, 3);
+        let view = touched.watching(&data);
+        for id in [129, 0, 64, 0, 129, 7] {
+            assert!(
+                view.chunk(id).is_err(),
+                "no data: the request still goes through"
+            );
+        }
+        assert!(view.tile(2).is_err());
+        // Past the end: refused by the data, not noted.
+        assert!(view.chunk(5000).is_err());
+        assert_eq!(touched.take(), (vec![0, 7, 64, 129], vec![2]));
+        assert_eq!(touched.take(), (vec![], vec![]));
     }
 }

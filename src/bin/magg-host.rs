@@ -38,6 +38,16 @@ enum Command {
     /// Predict a render with the simulator from a cluster render's --stats records: by
     /// default the same render (its time beside the measured one), or changed by the flags.
     Simulate(SimulateArgs),
+    /// Draw a render's timeline (a row per render node, a bar per subscreen, darker the
+    /// more it fetched) and its image tinted by who rendered each subscreen, from its
+    /// `--stats` file: STATS.timeline.png and STATS.nodes.png.
+    Plot {
+        /// The `--stats` file of a render (in one process or on a cluster).
+        stats: PathBuf,
+        /// Folder for the PNG files (default: the stats file's folder).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+    },
     /// Run as a fork node (what a spawning host starts; the flags of magg-fork-node).
     #[command(hide = true)]
     ForkNode(magg::NodeArgs),
@@ -887,7 +897,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
     );
     eprintln!(
         "{} subscreens ({} split off), {} transfer, cache {}% ({} bytes a node), link model {} x{}",
-        s.subscreens,
+        s.subscreen_count,
         s.subscreens_split,
         s.transfer,
         s.cache_percent,
@@ -1088,6 +1098,12 @@ fn main() {
         Command::Simulate(args) => simulate(args),
         Command::ForkNode(node) => magg::node_main(protocol::Role::Fork, &node),
         Command::RenderNode(node) => magg::node_main(protocol::Role::Render, &node),
+        Command::Plot { stats, output } => (|| {
+            let plots = lab::timeline::plot(&stats, output.as_deref())?;
+            println!("{}", plots.timeline.display());
+            println!("{}", plots.tinted.display());
+            Ok(())
+        })(),
         Command::Compare { image, reference } => (|| {
             let a = scene_io::read_image(&image)
                 .with_context(|| format!("reading {}", image.display()))?;
