@@ -549,6 +549,102 @@ fn lane_points(b: &Tri4, lane: usize) -> (glam::Vec3A, glam::Vec3A, glam::Vec3A)
     (v(0), v(1), v(2))
 }
 
+/// Updates `best` with the nearest hit among the triangles of `block` (of chunk `chunk`)
+/// that `accept` agrees to; true if it did. Only the winning lane's hit is put together.
+#[inline(always)]
+fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
+    q: &RayQuery,
+    block: &Tri4,
+    chunk: u32,
+    best: &mut Closest,
+    accept: &mut A,
+) -> bool {
+    let lanes = test_tri4(q, block, best.t);
+    let mut left = lanes.hits | lanes.undecided;
+    if left == 0 {
+        return false;
+    }
+    let mut t = lanes.t;
+    // Lanes the four-lane test cannot decide are decided exactly.
+    let mut exact: [Option<TriHit>; 4] = [None; 4];
+    let mut z = lanes.undecided;
+    while z != 0 {
+        let lane = z.trailing_zeros() as usize;
+        z &= z - 1;
+        let (v0, v1, v2) = lane_points(block, lane);
+        match triangle::intersect_upto(q, v0, v1, v2, best.t) {
+            Some(h) => {
+                t[lane] = h.t;
+                exact[lane] = Some(h);
+            }
+            None => left &= !(1 << lane),
+        }
+    }
+    // The nearest that `accept` takes, ties to the lower triangle index.
+    while left != 0 {
+        let mut pick = left.trailing_zeros() as usize;
+        let mut m = left & (left - 1);
+        while m != 0 {
+            let lane = m.trailing_zeros() as usize;
+            m &= m - 1;
+            if (t[lane], block.id[lane]) < (t[pick], block.id[pick]) {
+                pick = lane;
+            }
+        }
+        left &= !(1 << pick);
+        let tri = block.id[pick];
+        if !best.beaten_by(t[pick], chunk, tri) {
+            return false;
+        }
+        let h = exact[pick].unwrap_or_else(|| lanes.hit(pick));
+        if accept(tri, &h) {
+            *best = Closest {
+                t: h.t,
+                chunk,
+                tri,
+                hit: Some(h),
+            };
+            return true;
+        }
+    }
+    false
+}
+
+/// Calls `f` for the hits within (0, tmax) among the triangles of `block`, each triangle
+/// once, until it says stop.
+#[inline(always)]
+fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
+    q: &RayQuery,
+    block: &Tri4,
+    tmax: f32,
+    f: &mut F,
+) -> Visit {
+    let lanes = test_tri4(q, block, tmax);
+    let mut m = lanes.hits | lanes.undecided;
+    let mut reported = [u32::MAX; 4];
+    while m != 0 {
+        let lane = m.trailing_zeros() as usize;
+        m &= m - 1;
+        let tri = block.id[lane];
+        if reported.contains(&tri) {
+            continue;
+        }
+        reported[lane] = tri;
+        let hit = if lanes.hits & (1 << lane) != 0 {
+            Some(lanes.hit(lane)).filter(|h| h.t < tmax)
+        } else {
+            let (v0, v1, v2) = lane_points(block, lane);
+            triangle::intersect(q, v0, v1, v2, tmax)
+        };
+        if let Some(h) = hit
+            && f(tri, h) == Visit::Stop
+        {
+            return Visit::Stop;
+        }
+    }
+    Visit::Continue
+}
+
 impl Bvh8 {
     /// Updates `best` with the closest hit in this chunk (`chunk` is its id) that `accept`
     /// agrees to; true if it did.
@@ -563,55 +659,11 @@ impl Bvh8 {
         let mut found = false;
         let mut tmax = best.t;
         walk::<true>(&self.nodes, q, &mut tmax, |leaf, tmax| {
-            let Some(b) = self.leaves.get(leaf as usize) else {
-                return Visit::Continue;
-            };
-            let lanes = test_tri4(q, b, *tmax);
-            if lanes.hits | lanes.undecided == 0 {
-                return Visit::Continue;
-            }
-            let mut hits: [Option<TriHit>; 4] = [None; 4];
-            let mut m = lanes.hits;
-            while m != 0 {
-                let lane = m.trailing_zeros() as usize;
-                m &= m - 1;
-                hits[lane] = Some(lanes.hit(lane));
-            }
-            // Lanes the four-lane test cannot decide are decided exactly.
-            let mut z = lanes.undecided;
-            while z != 0 {
-                let lane = z.trailing_zeros() as usize;
-                z &= z - 1;
-                let (v0, v1, v2) = lane_points(b, lane);
-                hits[lane] = triangle::intersect_upto(q, v0, v1, v2, *tmax);
-            }
-            // The nearest that `accept` takes, ties to the lower triangle index.
-            loop {
-                let mut pick: Option<(usize, TriHit)> = None;
-                for (lane, h) in hits.iter().enumerate() {
-                    if let Some(h) = h
-                        && pick.is_none_or(|(p, ph)| (h.t, b.id[lane]) < (ph.t, b.id[p]))
-                    {
-                        pick = Some((lane, *h));
-                    }
-                }
-                let Some((lane, h)) = pick else { break };
-                hits[lane] = None;
-                let tri = b.id[lane];
-                if !best.beaten_by(h.t, chunk, tri) {
-                    break;
-                }
-                if accept(tri, &h) {
-                    *best = Closest {
-                        t: h.t,
-                        chunk,
-                        tri,
-                        hit: Some(h),
-                    };
-                    *tmax = h.t;
-                    found = true;
-                    break;
-                }
+            if let Some(b) = self.leaves.get(leaf as usize)
+                && closest_in_leaf(q, b, chunk, best, &mut accept)
+            {
+                *tmax = best.t;
+                found = true;
             }
             Visit::Continue
         });
@@ -624,33 +676,10 @@ impl Bvh8 {
     pub fn each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
         let mut t = tmax;
         walk::<false>(&self.nodes, q, &mut t, |leaf, _| {
-            let Some(b) = self.leaves.get(leaf as usize) else {
-                return Visit::Continue;
-            };
-            let lanes = test_tri4(q, b, tmax);
-            let mut m = lanes.hits | lanes.undecided;
-            let mut reported = [u32::MAX; 4];
-            while m != 0 {
-                let lane = m.trailing_zeros() as usize;
-                m &= m - 1;
-                let tri = b.id[lane];
-                if reported.contains(&tri) {
-                    continue;
-                }
-                reported[lane] = tri;
-                let hit = if lanes.hits & (1 << lane) != 0 {
-                    Some(lanes.hit(lane)).filter(|h| h.t < tmax)
-                } else {
-                    let (v0, v1, v2) = lane_points(b, lane);
-                    triangle::intersect(q, v0, v1, v2, tmax)
-                };
-                if let Some(h) = hit
-                    && f(tri, h) == Visit::Stop
-                {
-                    return Visit::Stop;
-                }
+            match self.leaves.get(leaf as usize) {
+                Some(b) => hits_in_leaf(q, b, tmax, &mut f),
+                None => Visit::Continue,
             }
-            Visit::Continue
         });
     }
 }
