@@ -242,14 +242,14 @@ fn path<D: SceneData>(
         let ns = bsdf.shading_normal();
         let ng = Vec3A::from(bsdf.geometric_normal());
 
-        // Next-event estimation.
-        let u_light = sampler.get_1d();
-        let u_point = sampler.get_2d();
+        // Next-event estimation. One 2D draw picks the light and the point on it, so the
+        // points of a pixel's samples are stratified over all the lights together.
+        let u_light = sampler.get_2d();
         if !bsdf.is_pure_delta()
-            && let Some((li, pmf)) = scene.light_distribution.sample(u_light)
+            && let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0)
         {
             let light = &scene.lights[li];
-            if let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), u_point)? {
+            if let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), (u_point, u_light.1))? {
                 let f = bsdf.eval(wo, ls.wi) * ls.wi.dot(ns).abs();
                 if f.max_element() > 0.0 && ls.li.max_element() > 0.0 {
                     let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
@@ -268,8 +268,13 @@ fn path<D: SceneData>(
         }
 
         // Continue the path.
-        let u_lobe = sampler.get_1d();
         let u_dir = sampler.get_2d();
+        // A Lambertian surface has one lobe: no number is spent choosing it.
+        let u_lobe = if bsdf.is_lambert() {
+            0.0
+        } else {
+            sampler.get_1d()
+        };
         let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else {
             break;
         };
