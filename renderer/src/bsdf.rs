@@ -392,6 +392,11 @@ impl Bsdf {
         self.is_delta_lobe() && self.p_diffuse == 0.0
     }
 
+    /// Nothing but a diffuse base: [`Bsdf::sample`] ignores its lobe number.
+    pub fn is_lambert(&self) -> bool {
+        self.lambert
+    }
+
     pub fn has_transmission(&self) -> bool {
         self.p_transmit > 0.0
     }

@@ -106,6 +106,9 @@ pub struct LightSample {
     pub delta: bool,
 }
 
+/// The largest f32 below 1.
+const ONE_BELOW_ONE: f32 = 1.0 - f32::EPSILON / 2.0;
+
 /// Cumulative distribution over lights by power.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 pub struct LightDistribution {
@@ -153,6 +156,22 @@ impl LightDistribution {
             .partition_point(|&c| c <= u)
             .min(self.cdf.len() - 1);
         Some((i, self.pmf(i)))
+    }
+
+    /// Chooses a light like [`LightDistribution::sample`] and also returns `u` stretched
+    /// back to [0, 1) within the chosen light's share of the interval. That number is
+    /// uniform and independent of the choice, so it can place the point on the light: one
+    /// stratified 2D draw then covers every light together (the two triangles of a quad
+    /// light get the draw's stratification between them instead of a coin toss each).
+    pub fn sample_reusing(&self, u: f32) -> Option<(usize, f32, f32)> {
+        let (i, pmf) = self.sample(u)?;
+        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
+        let reused = if pmf > 0.0 {
+            ((u - lo) / pmf).clamp(0.0, ONE_BELOW_ONE)
+        } else {
+            0.0
+        };
+        Some((i, pmf, reused))
     }
 
     pub fn pmf(&self, i: usize) -> f32 {
@@ -381,6 +400,20 @@ mod tests {
         assert_eq!(d.sample(0.0).unwrap().0, 0);
         assert_eq!(d.sample(0.2).unwrap().0, 1);
         assert_eq!(d.sample(0.9999).unwrap().0, 3);
+    }
+
+    #[test]
+    fn reused_number_is_uniform_within_the_choice() {
+        let d = LightDistribution::new(&[1.0, 3.0]);
+        assert_eq!(d.sample_reusing(0.0), Some((0, 0.25, 0.0)));
+        let (i, pmf, u) = d.sample_reusing(0.125).unwrap();
+        assert_eq!((i, pmf), (0, 0.25));
+        assert!((u - 0.5).abs() < 1e-6);
+        let (i, _, u) = d.sample_reusing(0.625).unwrap();
+        assert_eq!(i, 1);
+        assert!((u - 0.5).abs() < 1e-6);
+        let (_, _, u) = d.sample_reusing(0.999_999_94).unwrap();
+        assert!(u < 1.0);
     }
 
     #[test]

@@ -202,7 +202,8 @@ pub struct ShadingParams {
     pub emission: Vec3,
     /// Shading normal after normal mapping (world space, unit).
     pub normal: Vec3,
-    /// Tangent for anisotropic frames (unit, orthogonal to `normal`) when available.
+    /// Tangent of the normal map's frame (unit, orthogonal to `normal`); `None` without a
+    /// normal map, where any frame about the normal does.
     pub tangent: Option<(Vec3, f32)>,
 }
 
@@ -266,14 +267,17 @@ pub fn shading_params<D: SceneData>(
 
     // Normal mapping in the tangent frame of the first UV set (glTF: +Y is "up" in the
     // texture, i.e. towards decreasing v, which is why the bitangent is -dp/dv's direction).
+    // Without a normal map no tangent is worked out: every BSDF here is isotropic, so the
+    // shading frame may turn freely about the normal.
     let mut normal = s.ns;
     let mut tangent = None;
-    let frame_tangent = s
-        .tangent
+    let frame_tangent = m
+        .normal_tex
+        .and(s.tangent)
         .filter(|t| t.truncate().length_squared() > 1e-12 && t.is_finite())
         .map(|t| (t.truncate(), if t.w < 0.0 { -1.0 } else { 1.0 }))
         .or_else(|| {
-            s.dpdu.map(|(dpdu, dpdv)| {
+            m.normal_tex.and(s.dpdu).map(|(dpdu, dpdv)| {
                 // Handedness from the UV parameterisation: the bitangent points "up" in the
                 // texture, towards decreasing v (glTF's v runs down the image).
                 let sign = if s.ns.cross(dpdu).dot(dpdv) > 0.0 {

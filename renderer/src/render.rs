@@ -126,15 +126,11 @@ pub fn render_pixel<D: SceneData>(
     let mut sum_lum2 = 0f64;
     let mut n = 0u32;
     let batch = 8;
+    let rays = camera.rays(settings.width, settings.height);
     while n < settings.spp {
         let mut s = Sampler::new(settings.seed, x, y, n);
         let (du, dv) = s.pixel_2d();
-        let ray = camera.ray(
-            settings.width,
-            settings.height,
-            x as f32 + du,
-            y as f32 + dv,
-        );
+        let ray = rays.ray(x as f32 + du, y as f32 + dv);
         tracer.count_camera_ray();
         let l = integrator::radiance(tracer, settings, ray, &mut s)?;
         let l = if l.is_finite() {
