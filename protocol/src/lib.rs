@@ -38,8 +38,7 @@ pub use frame::{BROADCAST, Frame, FrameHeader, HEADER_LEN, MAX_DATA, MAX_META, M
 pub use handshake::{ConnectionKind, HandshakeError, Identity, Secret};
 pub use message::{
     DataId, DecodeError, DmaTransport, JobSpec, Message, NodeStats, Rect, Role, SubscreenWork,
-    Transfer,
-    TransferMode, bytes_to_words, decode_value, encode_value, words_to_bytes,
+    Transfer, TransferMode, bytes_to_words, decode_value, encode_value, words_to_bytes,
 };
 
 /// Bumped whenever the frame layout or the message set changes incompatibly.
