@@ -269,6 +269,42 @@ fn experiment_error_measures_falling_error_against_the_reference() {
     assert!(errors[0] > errors[1] && errors[1] > errors[2], "{csv}");
 }
 
+/// `experiment validate` renders its five cases on real processes and simulates each from
+/// the render's own records: every row has a measurement and a positive prediction.
+#[test]
+fn experiment_validate_predicts_every_case() {
+    let dir = scratch("validate");
+    let o = run(host()
+        .args([
+            "experiment",
+            "validate",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--spp",
+            "2",
+        ])
+        .arg("--scene")
+        .arg(data().join("scenes/cornell/cornell.gltf"))
+        .arg("--out")
+        .arg(&dir));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let csv = std::fs::read_to_string(dir.join("validate.csv")).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').skip(2).map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 5, "{csv}");
+    assert!(
+        rows.iter()
+            .all(|r| r[0] > 0.0 && r[1] > 0.0 && r[2].is_finite()),
+        "{csv}"
+    );
+    assert!(dir.join("report.md").is_file());
+}
+
 /// `experiment links` on the smallest cluster: every table and plot is written, and the
 /// measured one-packet times exist for the distances the card has.
 #[test]

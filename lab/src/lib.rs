@@ -17,6 +17,7 @@ pub mod raybench;
 pub mod runs;
 pub mod simulate;
 pub mod timeline;
+pub mod validate;
 pub mod whittedbench;
 
 /// Why a lab command (bench, gallery, plots) could not finish.
@@ -42,6 +43,8 @@ pub enum LabError {
         path: std::path::PathBuf,
         source: compare::SizeMismatch,
     },
+    #[error(transparent)]
+    Simulate(#[from] simulate::SimulateError),
     #[error("nothing to plot")]
     NothingToPlot,
     #[error("{path}: {source}")]

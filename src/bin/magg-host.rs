@@ -71,6 +71,25 @@ enum ExperimentCmd {
     /// renderers' curves from bench/peers when they were run.
     #[command(name = "error")]
     Convergence(ErrorArgs),
+    /// The simulator's predictions against real renders: 1 and 2 render nodes of one thread,
+    /// and the 86 processes with the paper's link model at its real time scale.
+    Validate(ValidateArgs),
+}
+
+#[derive(Args)]
+struct ValidateArgs {
+    /// Folder for the images, stats, CSV and report.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// The scene of the compute-bound cases (1 and 2 render nodes).
+    #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
+    scene: PathBuf,
+    #[arg(long, default_value_t = 192)]
+    width: u32,
+    #[arg(long, default_value_t = 192)]
+    height: u32,
+    #[arg(long, default_value_t = 32)]
+    spp: u32,
 }
 
 #[derive(Args)]
@@ -1036,6 +1055,18 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             };
             let r = lab::convergence::error_sweep(&own_program()?, &config, &dir)?;
             println!("{}", lab::convergence::table(&r));
+            println!("wrote {}/report.md", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::Validate(a) => {
+            let dir = a.out.unwrap_or_else(|| lab::runs::out_dir("validate"));
+            let rows = lab::validate::validate(
+                &own_program()?,
+                &a.scene,
+                (a.width, a.height, a.spp),
+                &dir,
+            )?;
+            println!("{}", lab::validate::table(&rows));
             println!("wrote {}/report.md", dir.display());
             Ok(())
         }
