@@ -12,8 +12,13 @@ use serde::Serialize;
 
 use crate::{
     runs::render_run,
-    simulate::{Overrides, predict},
+    simulate::{Overrides, measure_overheads, predict},
 };
+
+/// The part of a case's name after its colon: "demand 40%" of the cluster cases.
+fn short(name: &str) -> &str {
+    name.rsplit(": paper links and ").next().unwrap_or(name)
+}
 
 /// One prediction against one measurement.
 #[derive(Clone, Debug, Serialize)]
@@ -138,6 +143,30 @@ pub fn validate(
         texts[1].1,
         p.predicted_s,
     ));
+    // The cluster cases again with the real costs beyond the models, measured on this
+    // machine: from the render's own records, and from the other cluster render's.
+    let measured_overheads = [
+        measure_overheads(&texts[2].0)?.overheads,
+        measure_overheads(&texts[3].0)?.overheads,
+    ];
+    for (case, other) in [(2, 3), (3, 2)] {
+        for (source, from) in [(case, "its own records and overheads"), (other, "")] {
+            let from = if source == case {
+                from.to_string()
+            } else {
+                format!(
+                    "its own records, overheads of the {} render",
+                    short(cases[other].name)
+                )
+            };
+            let with = Overrides {
+                overheads: Some(measured_overheads[source - 2]),
+                ..Overrides::default()
+            };
+            let p = predict(&texts[case].0, &with)?;
+            rows.push(row(cases[case].name, &from, texts[case].1, p.predicted_s));
+        }
+    }
     let mut f = std::fs::File::create(dir.join("validate.csv")).map_err(folder)?;
     writeln!(
         f,
@@ -182,6 +211,9 @@ fn report_md(rows: &[ValidationRow]) -> String {
          (thread CPU time, chunks and tiles touched) on the same topology, link model, \
          transfer and scheduling. Render time is the host's, from the first subscreen handed \
          out to the last pixels in.\n\n{}\n\
+         The rows with overheads add the real costs per hop and before the start read off \
+         a recorded cluster render (`lab::simulate::measure_overheads`): from the render \
+         itself (not independent) or from the other cluster render (a cross-check).\n\n\
          Largest error: {:.1}% (the aim is 15%). Two cores run the host, the fork nodes and the \
          render nodes, so the two-node case also measures how the host and fork node share the \
          cores with the renderers; the link-bound cases at the paper's time scale spend most \

@@ -153,6 +153,8 @@ struct Held {
     /// no link delays, asking again at once would never let the time move).
     refused: bool,
     rows_arrived: u32,
+    handed_ns: u64,
+    done_ns: u64,
 }
 
 struct Sim<'a> {
@@ -244,6 +246,8 @@ pub(crate) fn run(work: &Workload, config: &SimConfig, model: Model) -> SimResul
         })
         .collect();
     let subscreens = work.subscreens.clone();
+    let mut net = net;
+    net.hop_overhead_ns = config.overheads.hop_ns;
     let mut sim = Sim {
         config,
         net,
@@ -295,12 +299,18 @@ impl Sim<'_> {
     fn begin(&mut self) {
         match self.config.transfer {
             Transfer::Demand { .. } => {
+                let o = self.config.overheads;
                 for node in 0..self.nodes.len() {
-                    self.queue.at(0, Event::Start { node });
+                    let at = o.start_ns + node as u64 * o.job_stagger_ns;
+                    self.queue.at(at, Event::Start { node });
                 }
             }
             Transfer::Batch => {
-                let mut ready_at = vec![0u64; self.nodes.len()];
+                let o = self.config.overheads;
+                let start = o.start_ns;
+                let mut ready_at: Vec<u64> = (0..self.nodes.len() as u64)
+                    .map(|k| start + k * o.job_stagger_ns)
+                    .collect();
                 let items: Vec<Item> = (0..self.chunk_bytes.len() as u32)
                     .map(Item::Chunk)
                     .chain((0..self.tile_bytes.len() as u32).map(Item::Tile))
@@ -315,7 +325,7 @@ impl Sim<'_> {
                 for item in items {
                     let bytes = self.bytes_of(item);
                     for (card, members) in by_card.iter().enumerate() {
-                        let ready = self.bring_to_card(item, card, 0);
+                        let ready = self.bring_to_card(item, card, start);
                         for &n in members {
                             let done = self.dma[card].book(ready, self.model.dma_ns(bytes));
                             ready_at[n] = ready_at[n].max(done);
@@ -359,7 +369,9 @@ impl Sim<'_> {
                     self.advance(node, now);
                 }
                 Event::RowAtFork { subscreen } => {
-                    self.held[subscreen as usize].rows_arrived += 1;
+                    let h = &mut self.held[subscreen as usize];
+                    h.rows_arrived += 1;
+                    h.done_ns = now;
                     self.rows_missing -= 1;
                     if self.rows_missing == 0 {
                         return now;
@@ -482,7 +494,9 @@ impl Sim<'_> {
             width: rect.width,
         };
         let bytes = wire(n.id, 0, &msg, 12 * rect.width as u64);
-        let at = self.net.send(&n.to_fork, bytes, now);
+        // The fork node passes the line on to the host outside the link model: only the
+        // real cost of one more message (zero unless overheads are given).
+        let at = self.net.send(&n.to_fork, bytes, now) + self.config.overheads.hop_ns;
         n.times.rows += 1;
         let subscreen = a.subscreen;
         self.queue.at(at, Event::RowAtFork { subscreen });
@@ -501,11 +515,12 @@ impl Sim<'_> {
         let at = match via {
             Via::Dma => {
                 self.bytes.dma += bytes;
-                if self.model.links_delayed() {
+                let sent = if self.model.links_delayed() {
                     self.dma[card].book(ready, self.model.dma_ns(bytes))
                 } else {
                     ready
-                }
+                };
+                sent + self.config.overheads.hop_ns
             }
             Via::Serial => {
                 self.bytes.mesh += bytes;
@@ -542,6 +557,7 @@ impl Sim<'_> {
                 node: Some(node),
                 giving_back: false,
                 refused: false,
+                handed_ns: now,
                 ..self.held[id as usize]
             };
             let n = &self.nodes[node];
@@ -672,6 +688,7 @@ impl Sim<'_> {
             mesh_wire_bytes: self.net.wire_bytes,
             events: self.events,
             nodes,
+            spans_ns: self.held.iter().map(|h| (h.handed_ns, h.done_ns)).collect(),
         }
     }
 }

@@ -51,6 +51,7 @@ use fabric::{
 use protocol::NodeId;
 use serde::{Deserialize, Serialize};
 
+pub use network::hops;
 pub use workload::{Band, Subscreen, Workload, WorkloadError};
 
 /// How scene data reaches the render nodes.
@@ -101,6 +102,29 @@ pub struct SimConfig {
     pub adaptive: bool,
     /// Multiplies every recorded CPU time (a slower or faster processor than the recording's).
     pub cpu_scale: f64,
+    /// Real costs the link, DMA and G-bus models leave out; zero models none.
+    pub overheads: Overheads,
+}
+
+/// What a real render pays beyond the modelled hardware: the processes' own work. The
+/// models give link, DMA and G-bus times of the 1991 machine; the processes that stand in for
+/// it also spend real time on each message (waking up, copying, the host's handling of a
+/// request, the fork node passing a scan line on) and before the first request (the job
+/// reaching every node, the scene header, the processes' start). Neither is a constant of
+/// the paper's machine, so neither has a default: they are measured on the machine whose
+/// render is replayed (`lab::simulate::measure_overheads` reads them off a recorded render),
+/// and zero leaves them out.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Overheads {
+    /// Before any render node may begin (and before a batch handout begins).
+    pub start_ns: u64,
+    /// Added for every hop of a message through the mesh (each process on the way wakes up,
+    /// reads, copies and writes it), and once for each demand reply by DMA and each scan
+    /// line the fork node passes on to the host.
+    pub hop_ns: u64,
+    /// The host sends the job to the nodes one after another: the k-th render node (in id
+    /// order) may begin `k * job_stagger_ns` after the first.
+    pub job_stagger_ns: u64,
 }
 
 impl SimConfig {
@@ -118,6 +142,7 @@ impl SimConfig {
             balance: Balance::AsRecorded,
             adaptive: false,
             cpu_scale: 1.0,
+            overheads: Overheads::default(),
         }
     }
 }
@@ -187,6 +212,9 @@ pub struct SimResult {
     /// Events processed: a measure of the simulation's own work.
     pub events: u64,
     pub nodes: Vec<NodeTimes>,
+    /// Per subscreen handed out, in id order (the workload's, then those split off): when the
+    /// host handed it out and when its last row reached the fork node, in ns.
+    pub spans_ns: Vec<(u64, u64)>,
 }
 
 /// Predicts the render of `workload` under `config`, event by event.

@@ -28,6 +28,15 @@ pub struct Network {
     topology: Topology,
     pub messages: u64,
     pub wire_bytes: u64,
+    /// Real time each hop costs beyond its modelled link time ([`crate::Overheads`]).
+    pub hop_overhead_ns: u64,
+}
+
+/// The hops of a message from `from` to `to` along the fabric's routes, all nodes alive.
+pub fn hops(topology: &Topology, from: NodeId, to: NodeId) -> usize {
+    Routes::all_alive(topology)
+        .path(from, to)
+        .map_or(0, |p| p.len().saturating_sub(1))
 }
 
 impl Network {
@@ -46,6 +55,7 @@ impl Network {
             topology: topology.clone(),
             messages: 0,
             wire_bytes: 0,
+            hop_overhead_ns: 0,
         }
     }
 
@@ -68,6 +78,7 @@ impl Network {
     pub fn send(&mut self, route: &[Hop], wire_bytes: usize, ready: u64) -> u64 {
         self.messages += 1;
         self.wire_bytes += wire_bytes as u64;
+        let ready = ready + self.hop_overhead_ns * route.len().max(1) as u64;
         if !self.model.links_delayed() {
             return ready;
         }

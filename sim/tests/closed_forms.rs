@@ -397,3 +397,54 @@ fn a_thousand_render_nodes_take_a_bounded_number_of_events() {
     assert!((busy - w.cpu_s()).abs() < 1e-3, "{busy} vs {}", w.cpu_s());
     each_node_adds_up(&r);
 }
+
+#[test]
+fn overheads_add_their_cost_per_hop_and_before_the_start() {
+    // One node, one row: the request to the host, the answer, the row to the fork node and
+    // its pass to the host each pay the hop cost once per hop, on top of the start.
+    let w = strips(4, 1, 1, 0.5, vec![], |_| vec![]);
+    let topology = Topology::preset("grid:1x1x1").unwrap();
+    let node = topology.render_nodes()[0];
+    let fork = topology.fork_of(node).unwrap();
+    let (start, hop) = (7_000_000, 300_000);
+    let r = simulate(
+        &w,
+        &SimConfig {
+            overheads: sim::Overheads {
+                start_ns: start,
+                hop_ns: hop,
+                job_stagger_ns: 0,
+            },
+            ..config("grid:1x1x1")
+        },
+    )
+    .unwrap();
+    let hops = sim::hops(&topology, node, 0)
+        + sim::hops(&topology, 0, node)
+        + sim::hops(&topology, node, fork)
+        + 1;
+    assert_eq!(r.total_ns, start + hop * hops as u64 + 500_000_000);
+    assert_eq!(r.spans_ns.len(), 1);
+    each_node_adds_up(&r);
+
+    // Two nodes whose job arrives a stagger apart: the later one ends the render.
+    let w = strips(4, 2, 1, 0.5, vec![], |_| vec![]);
+    let r = simulate(
+        &w,
+        &SimConfig {
+            overheads: sim::Overheads {
+                start_ns: start,
+                hop_ns: 0,
+                job_stagger_ns: 2_000_000,
+            },
+            ..config("grid:1x1x2")
+        },
+    )
+    .unwrap();
+    assert_eq!(r.total_ns, start + 2_000_000 + 500_000_000);
+    assert_eq!(
+        r.spans_ns[1].0,
+        start + 2_000_000,
+        "the second node's handout"
+    );
+}

@@ -518,6 +518,10 @@ struct SimulateArgs {
     /// Multiplies every recorded CPU time (a slower or faster processor).
     #[arg(long)]
     cpu_scale: Option<f64>,
+    /// Adds the real costs beyond the models (per message, before the start) read off this
+    /// recorded cluster render's stats (the same file, or another render on this machine).
+    #[arg(long)]
+    overheads_from: Option<PathBuf>,
     /// Also write the whole prediction as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -537,6 +541,23 @@ fn simulate(a: SimulateArgs) -> Result<()> {
         static_division: a.static_division,
         adaptive: a.adaptive,
         cpu_scale: a.cpu_scale,
+        overheads: match &a.overheads_from {
+            Some(path) => {
+                let from = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                let m = lab::simulate::measure_overheads(&from)
+                    .with_context(|| format!("measuring overheads in {}", path.display()))?;
+                println!(
+                    "overheads from {}: {:.1} us a hop, {:.1} ms before the start, {:.1} us between the nodes' starts",
+                    path.display(),
+                    m.overheads.hop_ns as f64 / 1e3,
+                    m.overheads.start_ns as f64 / 1e6,
+                    m.overheads.job_stagger_ns as f64 / 1e3
+                );
+                Some(m.overheads)
+            }
+            None => None,
+        },
     };
     let p = lab::simulate::predict(&text, &overrides)
         .with_context(|| format!("simulating {}", a.stats.display()))?;
