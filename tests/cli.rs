@@ -269,7 +269,7 @@ fn experiment_error_measures_falling_error_against_the_reference() {
     assert!(errors[0] > errors[1] && errors[1] > errors[2], "{csv}");
 }
 
-/// `experiment validate` renders its five cases on real processes and simulates each from
+/// `experiment validate` renders its four cases on real processes and simulates each from
 /// the render's own records: every row has a measurement and a positive prediction.
 #[test]
 fn experiment_validate_predicts_every_case() {
@@ -296,7 +296,7 @@ fn experiment_validate_predicts_every_case() {
         .skip(1)
         .map(|l| l.split(',').skip(2).map(|v| v.parse().unwrap()).collect())
         .collect();
-    assert_eq!(rows.len(), 5, "{csv}");
+    assert_eq!(rows.len(), 9, "{csv}");
     assert!(
         rows.iter()
             .all(|r| r[0] > 0.0 && r[1] > 0.0 && r[2].is_finite()),

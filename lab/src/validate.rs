@@ -155,7 +155,7 @@ pub fn validate(
                 from.to_string()
             } else {
                 format!(
-                    "its own records, overheads of the {} render",
+                    "its own records with the overheads of the {} render",
                     short(cases[other].name)
                 )
             };
