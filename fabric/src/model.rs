@@ -158,6 +158,15 @@ impl Model {
         Model { params }
     }
 
+    /// The paper's serial-link model with every other parameter at its default: what the
+    /// experiments and the unit tests of the models built on it start from.
+    pub fn paper() -> Model {
+        Model::new(ModelParams {
+            link: LinkModelKind::Paper,
+            ..ModelParams::default()
+        })
+    }
+
     pub fn links_delayed(&self) -> bool {
         self.params.link == LinkModelKind::Paper
     }
@@ -276,16 +285,9 @@ impl Buses {
 mod tests {
     use super::*;
 
-    fn paper() -> Model {
-        Model::new(ModelParams {
-            link: LinkModelKind::Paper,
-            ..ModelParams::default()
-        })
-    }
-
     #[test]
     fn formula_decomposes_into_hops() {
-        let m = paper();
+        let m = Model::paper();
         // 2 row steps and 3 column steps of an 84-byte packet.
         let total = m.base_ns() + 2 * m.hop_ns(true, 84) + 3 * m.hop_ns(false, 84);
         assert_eq!(total, m.formula_ns(2, 3));
@@ -294,7 +296,7 @@ mod tests {
 
     #[test]
     fn long_messages_pipeline() {
-        let m = paper();
+        let m = Model::paper();
         let (n, size) = m.packets(6400 + 40);
         assert_eq!((n, size), (11, 1024));
         let hop = m.hop_ns(false, size);

@@ -106,20 +106,13 @@ impl ForkNode {
 
 #[cfg(test)]
 mod tests {
-    use fabric::model::{LinkModelKind, ModelParams};
+    use fabric::model::ModelParams;
 
     use super::*;
 
-    fn paper() -> Model {
-        Model::new(ModelParams {
-            link: LinkModelKind::Paper,
-            ..ModelParams::default()
-        })
-    }
-
     #[test]
     fn two_buses_carry_two_transfers_at_once_and_queue_the_third() {
-        let model = paper();
+        let model = Model::paper();
         let bus = GBus::new(2);
         // 5 us setup + 840 bytes at 84 bytes/us.
         let d = model.gbus_ns(840);
@@ -133,7 +126,7 @@ mod tests {
 
     #[test]
     fn one_bus_serialises_everything() {
-        let model = paper();
+        let model = Model::paper();
         let bus = GBus::new(1);
         let d = model.gbus_ns(84);
         assert_eq!(bus.book(&model, 84, 100), 100 + d);

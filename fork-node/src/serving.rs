@@ -132,16 +132,9 @@ impl ForkNode {
 
 #[cfg(test)]
 mod tests {
-    use fabric::model::{LinkModelKind, ModelParams};
+    use fabric::model::ModelParams;
 
     use super::*;
-
-    fn paper() -> Model {
-        Model::new(ModelParams {
-            link: LinkModelKind::Paper,
-            ..ModelParams::default()
-        })
-    }
 
     #[test]
     fn dma_costs_nothing_when_links_are_not_delayed() {
@@ -154,7 +147,7 @@ mod tests {
     #[test]
     fn dma_transfers_queue_on_the_card_bus() {
         let s = Serving::default();
-        let model = paper();
+        let model = Model::paper();
         let d = model.dma_ns(2000);
         // 100 us setup + 2000 bytes at 20 bytes/us.
         assert_eq!(d, 200_000);

@@ -95,21 +95,14 @@ impl Network {
 
 #[cfg(test)]
 mod tests {
-    use fabric::model::{LinkModelKind, ModelParams};
+    use fabric::model::ModelParams;
 
     use super::*;
-
-    fn paper() -> Model {
-        Model::new(ModelParams {
-            link: LinkModelKind::Paper,
-            ..ModelParams::default()
-        })
-    }
 
     #[test]
     fn routes_follow_the_fabric_and_know_their_direction() {
         let t = Topology::preset("tiny").unwrap();
-        let n = Network::new(&t, paper());
+        let n = Network::new(&t, Model::paper());
         // Host 0 - fork 1 - render 2 (0,0); 5 is at (1,1): one column step, one row step.
         let r = n.route(5, 0);
         assert_eq!(r.len(), 4);
@@ -119,7 +112,7 @@ mod tests {
     #[test]
     fn an_84_byte_packet_takes_the_papers_formula_hop_by_hop() {
         let t = Topology::preset("magg").unwrap();
-        let mut n = Network::new(&t, paper());
+        let mut n = Network::new(&t, Model::paper());
         let at = |row: i32, col: i32| {
             (0..t.len() as NodeId)
                 .find(|&i| t.position(i) == Some((row, col)))
