@@ -107,10 +107,7 @@ pub fn load_balance(
     dynamic_subscreens: u32,
     dir: &Path,
 ) -> Result<BalanceReport, crate::LabError> {
-    std::fs::create_dir_all(dir).map_err(|source| crate::LabError::Folder {
-        path: dir.to_path_buf(),
-        source,
-    })?;
+    std::fs::create_dir_all(dir).map_err(crate::LabError::folder(dir))?;
     let base = [render_args, cluster_args].concat();
     // A first dynamic run tells how many render nodes the cluster has.
     let run = |name: &str, extra: &[String]| -> Result<(serde_json::Value, Vec<u8>), RunError> {
@@ -150,10 +147,7 @@ pub fn load_balance(
 }
 
 fn write_csv(path: &Path, r: &BalanceReport) -> Result<(), crate::LabError> {
-    let io = |source| crate::LabError::Folder {
-        path: path.to_path_buf(),
-        source,
-    };
+    let io = crate::LabError::folder(path);
     let mut f = std::fs::File::create(path).map_err(io)?;
     writeln!(
         f,

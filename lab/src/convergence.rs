@@ -78,10 +78,7 @@ pub fn error_sweep(
     config: &ErrorConfig,
     dir: &Path,
 ) -> Result<ErrorReport, crate::LabError> {
-    let folder = |source| crate::LabError::Folder {
-        path: dir.to_path_buf(),
-        source,
-    };
+    let folder = crate::LabError::folder(dir);
     std::fs::create_dir_all(dir).map_err(folder)?;
     let reference = scene_io::image_io::read_image(&config.reference)?;
     if (reference.width, reference.height) != (config.width, config.height) {
@@ -186,10 +183,7 @@ pub fn error_sweep(
 
 /// The peers' rows of `bench/peers/mitsuba.py`'s results, a curve per renderer and variant.
 fn peer_curves(path: &Path) -> Result<Vec<Curve>, crate::LabError> {
-    let text = std::fs::read(path).map_err(|source| crate::LabError::Folder {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let text = std::fs::read(path).map_err(crate::LabError::folder(path))?;
     let v: serde_json::Value = serde_json::from_slice(&text)
         .map_err(|e| crate::LabError::Draw(format!("{}: {e}", path.display())))?;
     let mut curves: Vec<Curve> = Vec::new();

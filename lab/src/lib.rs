@@ -67,4 +67,12 @@ impl LabError {
     pub fn draw(e: impl std::fmt::Display) -> LabError {
         LabError::Draw(e.to_string())
     }
+
+    /// For `map_err` on a file or folder operation under `path`.
+    pub fn folder(path: &std::path::Path) -> impl Fn(std::io::Error) -> LabError + Copy + '_ {
+        move |source| LabError::Folder {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
 }

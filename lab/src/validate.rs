@@ -61,10 +61,7 @@ pub fn validate(
     size: (u32, u32, u32),
     dir: &Path,
 ) -> Result<Vec<ValidationRow>, crate::LabError> {
-    let folder = |source| crate::LabError::Folder {
-        path: dir.to_path_buf(),
-        source,
-    };
+    let folder = crate::LabError::folder(dir);
     std::fs::create_dir_all(dir).map_err(folder)?;
     let (w, h, spp) = (size.0.to_string(), size.1.to_string(), size.2.to_string());
     let image = |w: &str, h: &str, spp: &str| {
