@@ -8,6 +8,15 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
+/// What this build is (see `build.rs`): every process of a cluster must show the same.
+pub const BUILD_ID: &str = env!("MAGG_BUILD_ID");
+
+/// Makes this process show [`BUILD_ID`] at handshakes. The binaries do it first thing; a test
+/// that runs a role in its own process beside the binaries does it too.
+pub fn stamp_build_id() {
+    protocol::stamp_build_id(BUILD_ID);
+}
+
 /// Parses the command line; a mistake is one line on stderr and exit code 2 (help and
 /// version print as usual).
 pub fn parse_args<T: clap::Parser>() -> T {
@@ -17,6 +26,9 @@ pub fn parse_args<T: clap::Parser>() -> T {
 /// [`parse_args`] for a command line described at run time: `command` is `T`'s, renamed or
 /// reworded.
 fn parse_command_line<T: clap::FromArgMatches>(mut command: clap::Command) -> T {
+    // Every binary parses its command line first, so this stamps the identity before any
+    // handshake.
+    stamp_build_id();
     let parsed = command
         .try_get_matches_from_mut(std::env::args_os())
         .and_then(|mut matches| {
@@ -183,7 +195,7 @@ pub async fn stop_signal() -> &'static str {
 
 /// The command line of `magg-fork-node` and `magg-render-node`: the node flags and a log level.
 #[derive(clap::Parser)]
-#[command(version = protocol::BUILD_ID)]
+#[command(version = BUILD_ID)]
 pub struct NodeCli {
     #[command(flatten)]
     pub node: NodeArgs,

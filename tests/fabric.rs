@@ -18,6 +18,8 @@ use host::cluster::{Cluster, ClusterConfig, ClusterMode, bind, start, start_on};
 use protocol::{Frame, Message, NodeId, Secret};
 
 fn config(topology: &str, mode: ClusterMode) -> ClusterConfig {
+    // The host runs in this test process, the nodes in the binaries: the same build.
+    magg::stamp_build_id();
     ClusterConfig {
         mode,
         topology: Topology::resolve(topology).unwrap(),
@@ -210,7 +212,7 @@ async fn wrong_secret_and_wrong_version_are_refused() {
                 node: None,
                 kind: protocol::ConnectionKind::Control,
             },
-            build: protocol::BUILD_ID.into(),
+            build: magg::BUILD_ID.into(),
         };
         let f = Frame::new(0, 0, &hello, Box::new([]));
         let mut bytes = f.header.encode().to_vec();

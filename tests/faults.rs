@@ -351,14 +351,14 @@ fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
         let _ = s.read_to_end(&mut reply);
         String::from_utf8_lossy(&reply).into_owned()
     };
-    let text = refusal(99, protocol::BUILD_ID);
+    let text = refusal(99, magg::BUILD_ID);
     assert!(
         text.contains("version"),
         "the refusal should say why: {text:?}"
     );
     let text = refusal(protocol::PROTOCOL_VERSION, "magg 0.0.9 src 000000000000");
     assert!(
-        text.contains("same build") && text.contains(protocol::BUILD_ID),
+        text.contains("same build") && text.contains(magg::BUILD_ID),
         "the refusal should name both builds: {text:?}"
     );
     assert!(

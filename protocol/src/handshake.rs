@@ -20,7 +20,7 @@ use sha2::Sha256;
 use tokio::io::{AsyncRead, AsyncWrite};
 
 use crate::{
-    BUILD_ID, PROTOCOL_VERSION,
+    PROTOCOL_VERSION, build_id,
     codec::{FrameReader, FrameWriter, ReadError},
     frame::{Frame, NodeId},
     message::{Message, Role},
@@ -164,7 +164,7 @@ pub async fn call<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                 cluster_id: cluster.into(),
                 nonce: nc,
                 identity,
-                build: BUILD_ID.into(),
+                build: build_id().into(),
             },
         )
         .await?;
@@ -232,13 +232,14 @@ pub async fn answer<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                     let _ = send(w, &Message::Refused { reason: format!("this is cluster {cluster:?}, not {cluster_id:?}") }).await;
                     return Err(HandshakeError::Cluster { theirs: cluster_id, ours: cluster.into() });
                 }
-                if build != BUILD_ID {
+                if build != build_id() {
                     let reason = format!(
-                        "this node runs build {BUILD_ID:?} and you run {build:?}: every process of a \
-                         cluster must run the same build (rebuild, then restart the nodes with the new binaries)"
+                        "this node runs build {:?} and you run {build:?}: every process of a \
+                         cluster must run the same build (rebuild, then restart the nodes with the new binaries)",
+                        build_id()
                     );
                     let _ = send(w, &Message::Refused { reason }).await;
-                    return Err(HandshakeError::Build { theirs: build, ours: BUILD_ID.into() });
+                    return Err(HandshakeError::Build { theirs: build, ours: build_id().into() });
                 }
                 (nonce, identity)
             }
@@ -354,7 +355,7 @@ mod tests {
         });
         let mut w = FrameWriter::new(xw);
         let mut r = FrameReader::new(xr);
-        let other = format!("{BUILD_ID} (edited)");
+        let other = format!("{} (edited)", build_id());
         send(
             &mut w,
             &Message::Hello {

@@ -45,7 +45,22 @@ pub use message::{
 pub const PROTOCOL_VERSION: u32 = 4;
 
 /// What this process was built from: crate version, hashes of the workspace's sources and of
-/// the lock file, target architecture and instruction-set features (see `build.rs`). Every
-/// process of a cluster must show the same, or the handshake refuses it: processes built
-/// from different code could render different bytes for the same pixel.
-pub const BUILD_ID: &str = env!("MAGG_BUILD_ID");
+/// the lock file, target architecture and instruction-set features (the root package's
+/// `build.rs` computes it; its binaries stamp it with [`stamp_build_id`] before anything
+/// else). Every process of a cluster must show the same, or the handshake refuses it:
+/// processes built from different code could render different bytes for the same pixel.
+/// A process that never stamped it (a library's own tests) shows the crate version marked
+/// unstamped, which no stamped binary accepts.
+pub fn build_id() -> &'static str {
+    BUILD_ID
+        .get()
+        .copied()
+        .unwrap_or(concat!(env!("CARGO_PKG_VERSION"), " unstamped"))
+}
+
+/// Sets this process's [`build_id`]; the first stamp wins.
+pub fn stamp_build_id(id: &'static str) {
+    let _ = BUILD_ID.set(id);
+}
+
+static BUILD_ID: std::sync::OnceLock<&'static str> = std::sync::OnceLock::new();

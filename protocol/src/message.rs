@@ -76,7 +76,7 @@ pub enum Message {
         cluster_id: String,
         nonce: [u8; 32],
         identity: Identity,
-        /// The caller's [`crate::BUILD_ID`].
+        /// The caller's [`crate::build_id`].
         build: String,
     },
     Challenge {

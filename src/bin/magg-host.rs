@@ -11,7 +11,7 @@ magg::check_cpu_at_start!();
 #[derive(Parser)]
 #[command(
     name = "magg-host",
-    version = protocol::BUILD_ID,
+    version = magg::BUILD_ID,
     about = "magg: a distributed ray tracer (the host role)"
 )]
 struct Cli {

@@ -5,8 +5,12 @@
 //! identity differs from its own.
 //!
 //! The sources are the `src/` folders, manifests and build scripts of the workspace's
-//! packages (every folder beside this one with a `Cargo.toml`, `fuzz` aside) and of the root
-//! package; tests, benchmarks and documents do not enter it.
+//! packages (every folder here with a `Cargo.toml`, `fuzz` aside) and of the root package;
+//! tests, benchmarks and documents do not enter it.
+//!
+//! It lives in the root package, whose binaries stamp it into `protocol` at start-up, and not
+//! in `protocol` itself: there, any edit anywhere in the workspace rebuilt `protocol` and
+//! every crate above it.
 
 use std::{
     fs,
@@ -17,9 +21,7 @@ use sha2::{Digest, Sha256};
 
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets it"));
-    let root = manifest
-        .parent()
-        .expect("protocol lives inside the workspace");
+    let root = manifest.as_path();
 
     let mut packages: Vec<PathBuf> = vec![root.to_path_buf()];
     if let Ok(entries) = fs::read_dir(root) {
