@@ -385,3 +385,53 @@ fn simulate_predicts_a_recorded_render_and_another_machine() {
     assert!(err.contains("no per-subscreen records"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
 }
+
+/// `experiment speedup` at a tiny size: a recording, measured points on real processes (1, 2
+/// and 8 render nodes) each beside its prediction, simulated curves to 1000 render nodes,
+/// and every finding of the paper checked in the report.
+#[test]
+fn experiment_speedup_measures_simulates_and_checks_the_findings() {
+    let dir = scratch("speedup");
+    let o = run(host()
+        .args(["experiment", "speedup", "--width", "40", "--height", "30"])
+        .arg("--scene")
+        .arg(data().join("scenes/cornell/cornell.gltf"))
+        .arg("--out")
+        .arg(&dir)
+        .args(["--", "--spp", "1", "--integrator", "whitted"]));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let csv = std::fs::read_to_string(dir.join("speedup.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    let measured: Vec<_> = rows.iter().filter(|r| r[0] == "measured").collect();
+    assert_eq!(measured.len(), 6, "{csv}");
+    assert!(
+        measured
+            .iter()
+            .all(|r| r[4].parse::<f64>().unwrap() > 0.0 && r[5].parse::<f64>().unwrap() > 0.0),
+        "{csv}"
+    );
+    // T(1)/T(1) is 1 on every simulated curve.
+    assert!(
+        rows.iter()
+            .filter(|r| r[0] == "simulated" && r[3] == "1")
+            .all(|r| (r[4].parse::<f64>().unwrap() - 1.0).abs() < 1e-9),
+        "{csv}"
+    );
+    assert!(
+        rows.iter().any(|r| r[0] == "simulated" && r[3] == "1000"),
+        "{csv}"
+    );
+    let report = std::fs::read_to_string(dir.join("report.md")).unwrap();
+    assert_eq!(
+        report.matches("| yes |").count() + report.matches("| no |").count(),
+        8,
+        "{report}"
+    );
+    for png in ["speedup-1.png", "speedup-2.png", "speedup-measured.png"] {
+        assert!(dir.join(png).is_file(), "{png}");
+    }
+}

@@ -6,6 +6,7 @@
 //! libraries carry only what a cluster needs; it uses them the way a user would (whole
 //! renders, real clusters, the render node's cache).
 
+pub mod all;
 pub mod balance;
 pub mod bench;
 pub mod compare;
@@ -15,6 +16,7 @@ pub mod gallery;
 pub mod plot;
 pub mod raybench;
 pub mod runs;
+pub mod scaling;
 pub mod simulate;
 pub mod timeline;
 pub mod validate;

@@ -70,6 +70,20 @@ pub fn log_log_png(
     y_label: &str,
     series: &[(String, Vec<(f64, f64)>)],
 ) -> Result<(), crate::LabError> {
+    log_log_marked_png(path, title, x_label, y_label, series, &[])
+}
+
+/// [`log_log_png`] with a second kind of series drawn as marks only (measured points beside
+/// simulated curves); the i-th mark series takes the colour of the i-th line, so a measured
+/// set and its simulated curve match.
+pub fn log_log_marked_png(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+    marks: &[(String, Vec<(f64, f64)>)],
+) -> Result<(), crate::LabError> {
     let (w, h) = (1200u32, 800u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
     let labels = ensure_font();
@@ -78,6 +92,7 @@ pub fn log_log_png(
         root.fill(&WHITE).map_err(crate::LabError::draw)?;
         let pts: Vec<(f64, f64)> = series
             .iter()
+            .chain(marks)
             .flat_map(|s| s.1.iter().copied())
             .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.1.is_finite())
             .collect();
@@ -126,6 +141,20 @@ pub fn log_log_png(
                 s.label(name.clone()).legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
                 });
+            }
+        }
+        for (i, (name, points)) in marks.iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            let s = chart
+                .draw_series(
+                    points
+                        .iter()
+                        .map(|&p| Cross::new(p, 9, color.stroke_width(3))),
+                )
+                .map_err(crate::LabError::draw)?;
+            if labels {
+                s.label(name.clone())
+                    .legend(move |(x, y)| Cross::new((x + 10, y), 6, color.stroke_width(3)));
             }
         }
         if labels {

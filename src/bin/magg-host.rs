@@ -74,6 +74,50 @@ enum ExperimentCmd {
     /// The simulator's predictions against real renders: 1 and 2 render nodes of one thread,
     /// and the 86 processes with the paper's link model at its real time scale.
     Validate(ValidateArgs),
+    /// Figure 1.11: rendering time of 80 render nodes against the number of subscreens, one
+    /// curve per cache size (simulated from a recorded render, with measured points).
+    Subscreens(ScalingArgs),
+    /// Figures 1.12 to 1.15: T(1)/T(n) against the number of render nodes, batch and demand
+    /// transfer (simulated to 1000 render nodes, with measured points).
+    Speedup(ScalingArgs),
+    /// Every experiment at its default size and one report.md linking them (about 15 minutes
+    /// on 2 cores).
+    All(AllArgs),
+}
+
+#[derive(Args)]
+struct AllArgs {
+    /// Folder for every experiment's folder and the report [default: out/all].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Only these experiments (comma-separated names).
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+}
+
+#[derive(Args)]
+struct ScalingArgs {
+    /// Folder for the recording, measured renders, CSV, plots and report.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(
+        long,
+        default_value = "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
+    )]
+    scene: PathBuf,
+    #[arg(long, default_value_t = 480)]
+    width: u32,
+    #[arg(long, default_value_t = 270)]
+    height: u32,
+    /// Time scale of the measured points (the paper's link times at 1).
+    #[arg(long, default_value_t = 1.0)]
+    measured_time_scale: f64,
+    /// More measured points and simulated points (about twice the running time).
+    #[arg(long)]
+    full: bool,
+    /// Render flags of every run besides the scene and size.
+    #[arg(last = true)]
+    render: Vec<String>,
 }
 
 #[derive(Args)]
@@ -462,6 +506,19 @@ fn resume_hint(output: &std::path::Path) {
 }
 
 /// This executable: spawned nodes and the lab's whole-render runs start it again.
+fn scaling_config(a: ScalingArgs) -> lab::scaling::ScalingConfig {
+    let mut c = lab::scaling::ScalingConfig::small(a.scene);
+    c.width = a.width;
+    c.height = a.height;
+    c.measured_time_scale = a.measured_time_scale;
+    c.full = a.full;
+    if !a.render.is_empty() {
+        c.render_args = a.render;
+    }
+    c.record_subscreens = c.record_subscreens.min(a.width * a.height / 2).max(1);
+    c
+}
+
 fn own_program() -> Result<PathBuf> {
     std::env::current_exe()
         .context("finding this executable, which spawned nodes and lab runs start")
@@ -1025,7 +1082,23 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
         ExperimentCmd::Overhead(a) => {
             let dir = a.out.unwrap_or_else(|| lab::runs::out_dir("overhead"));
             let cluster: Vec<String> = a.cluster.split_whitespace().map(String::from).collect();
-            let r = lab::runs::overhead(&own_program()?, &a.render, &cluster, &dir)?;
+            // The small default: the Cornell box (in the repository), about a minute.
+            let render = if a.render.is_empty() {
+                [
+                    "tests/data/scenes/cornell/cornell.gltf",
+                    "--width",
+                    "256",
+                    "--height",
+                    "256",
+                    "--spp",
+                    "64",
+                ]
+                .map(String::from)
+                .to_vec()
+            } else {
+                a.render
+            };
+            let r = lab::runs::overhead(&own_program()?, &render, &cluster, &dir)?;
             println!("{}", lab::runs::overhead_table(&r));
             std::fs::write(dir.join("overhead.json"), serde_json::to_vec_pretty(&r)?)?;
             Ok(())
@@ -1033,9 +1106,34 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
         ExperimentCmd::Cache(a) => {
             let dir = a.run.out.unwrap_or_else(|| lab::runs::out_dir("cache"));
             let cluster: Vec<String> = a.run.cluster.split_whitespace().map(String::from).collect();
+            // The small default: DamagedHelmet (in the repository) in small chunks, the
+            // paper's integrator and link model; every size holds its largest item.
+            let render = if a.run.render.is_empty() {
+                [
+                    "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb",
+                    "--width",
+                    "160",
+                    "--height",
+                    "120",
+                    "--spp",
+                    "1",
+                    "--integrator",
+                    "whitted",
+                    "--chunk-triangles",
+                    "256",
+                    "--link-model",
+                    "paper",
+                    "--time-scale",
+                    "0.1",
+                ]
+                .map(String::from)
+                .to_vec()
+            } else {
+                a.run.render
+            };
             let rows = lab::runs::cache_sweep(
                 &own_program()?,
-                &[a.run.render, cluster].concat(),
+                &[render, cluster].concat(),
                 &a.caches,
                 &dir,
             )?;
@@ -1077,6 +1175,48 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             let r = lab::convergence::error_sweep(&own_program()?, &config, &dir)?;
             println!("{}", lab::convergence::table(&r));
             println!("wrote {}/report.md", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::Subscreens(a) | ExperimentCmd::Speedup(a) if !a.scene.is_file() => {
+            anyhow::bail!("{}: no such scene file", a.scene.display())
+        }
+        ExperimentCmd::Subscreens(a) => {
+            let dir = a
+                .out
+                .clone()
+                .unwrap_or_else(|| lab::runs::out_dir("subscreens"));
+            let r = lab::scaling::subscreens(&own_program()?, &scaling_config(a), &dir)?;
+            println!("{}", lab::scaling::findings_table(&r));
+            println!("{}", lab::scaling::measured_table(&r, "subscreens"));
+            println!("wrote {}/report.md", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::Speedup(a) => {
+            let dir = a
+                .out
+                .clone()
+                .unwrap_or_else(|| lab::runs::out_dir("speedup"));
+            let r = lab::scaling::speedup(&own_program()?, &scaling_config(a), &dir)?;
+            println!("{}", lab::scaling::findings_table(&r));
+            println!("{}", lab::scaling::measured_table(&r, "render nodes"));
+            println!("wrote {}/report.md", dir.display());
+            Ok(())
+        }
+        ExperimentCmd::All(a) => {
+            let dir = a.out.unwrap_or_else(lab::all::default_dir);
+            let results = lab::all::all(&own_program()?, &dir, &a.only)?;
+            for r in &results {
+                println!(
+                    "{:<14} {:>6.0} s  {}",
+                    r.name,
+                    r.seconds,
+                    if r.ok { "ok" } else { "FAILED" }
+                );
+            }
+            println!("wrote {}/report.md", dir.display());
+            if results.iter().any(|r| !r.ok) {
+                anyhow::bail!("some experiments failed; their output is in the report");
+            }
             Ok(())
         }
         ExperimentCmd::Validate(a) => {
