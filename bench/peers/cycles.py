@@ -6,6 +6,7 @@ Usage (from anywhere; the script finds the repository from its own path):
     python3 bench/peers/cycles.py                  # 1, 2, 4 ... 1024 spp
     python3 bench/peers/cycles.py --max-spp 64     # 1 to 64 spp
     python3 bench/peers/cycles.py --spp 16,256 --repeat 3 --skip-magg
+    python3 bench/peers/cycles.py --table-only     # the tables again from OUT/cycles-results.json
     python3 bench/peers/cycles.py --magg-mode cluster   # magg's default 86-process cluster
 
 Set-up, done by the script itself on its first run: a virtual environment
@@ -539,7 +540,7 @@ def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict)
         s = {"largest_spp": last["spp"], "wall_x_relmse": last["wall_s"] * last["rel_mse"],
              "render_x_relmse": last["render_s"] * last["rel_mse"], "slope_from_16spp": slope(rs)}
         for target in TARGETS:
-            for kind in ("wall", "render"):
+            for kind in ("wall", "render", "cpu"):
                 est = M.time_to_reach([(r[f"{kind}_s"], r["rel_mse"]) for r in rs], target)
                 s[f"{kind}_s_to_{target:g}"] = est[0] if est else None
                 s[f"{kind}_s_to_{target:g}_note"] = est[1] if est else "too few points"
@@ -551,6 +552,7 @@ def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict)
     for target in TARGETS:
         metrics.append((f"wall_s_to_{target:g}", f"wall time to relMSE {M.target_label(target)} (s)"))
         metrics.append((f"render_s_to_{target:g}", f"render time to relMSE {M.target_label(target)} (s)"))
+        metrics.append((f"cpu_s_to_{target:g}", f"CPU time to relMSE {M.target_label(target)} (s)"))
     ratios: dict = {}
     lines += ["", "Summary (lower is better; ratio < 1: magg is faster or more efficient):", ""]
     head = ["metric"] + [f"{k} ({summary[k]['largest_spp']} spp)" for k in summary]
@@ -607,6 +609,8 @@ def parse_args() -> argparse.Namespace:
                         "(a single flag: --magg-args=--adaptive)")
     p.add_argument("--skip-magg", action="store_true")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    p.add_argument("--table-only", action="store_true",
+                   help="print and write the tables again from OUT/cycles-results.json; render nothing")
     a = p.parse_args()
     if a.spp.strip():
         a.spp_list = sorted({int(s) for s in a.spp.split(",") if s.strip()})
@@ -627,6 +631,9 @@ def load_average() -> str:
 
 def main() -> None:
     args = parse_args()
+    if args.table_only:
+        table_only(args.out)
+        return
     bpy = import_bpy()
     import numpy as np
 
@@ -730,6 +737,12 @@ def main() -> None:
         "depth": depth, "magg_mode": None if args.skip_magg else args.magg_mode,
         "magg_args": args.magg_args,
     }
+    write_report(args.out, meta, rows, renderers, checks)
+
+
+def write_report(out: Path, meta: dict, rows: list[dict], renderers: list[tuple[str, str]],
+                 checks: dict) -> None:
+    """Prints the tables and writes OUT/cycles-table.md and OUT/cycles-results.json."""
     table, summary = build_tables(rows, renderers, meta)
     lines = ["", "Checks:", ""]
     imp = checks["import"]
@@ -740,7 +753,7 @@ def main() -> None:
     lines.append(f"- single-sided emission made front-only: {', '.join(imp['front_only_emission']) or 'none'}")
     lines.append(f"- reference channel means {checks['reference_channel_means']}; "
                  + "; ".join(f"{r['renderer']} {r['spp']} spp {r['channel_means']}"
-                             for r in rows if r["spp"] == args.spp_list[-1]))
+                             for r in rows if r["spp"] == meta["spp"][-1]))
     if "reference_exr_vs_pfm_relmse" in checks:
         lines.append(f"- reference EXR vs PFM relMSE: {checks['reference_exr_vs_pfm_relmse']:.3g}")
     for c in checks.get("magg_compare", []):
@@ -751,11 +764,21 @@ def main() -> None:
     table += "\n".join(lines) + "\n"
     print(table)
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "cycles-table.md").write_text(table)
-    (args.out / "cycles-results.json").write_text(json.dumps(
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "cycles-table.md").write_text(table)
+    (out / "cycles-results.json").write_text(json.dumps(
         {"meta": meta, "runs": rows, "summary": summary, "checks": checks}, indent=2) + "\n")
-    log(f"wrote {args.out / 'cycles-table.md'} and {args.out / 'cycles-results.json'}")
+    log(f"wrote {out / 'cycles-table.md'} and {out / 'cycles-results.json'}")
+
+
+def table_only(out: Path) -> None:
+    """The tables again from OUT/cycles-results.json, without rendering."""
+    path = out / "cycles-results.json"
+    if not path.is_file():
+        sys.exit(f"error: no {path} (run the sweep first)")
+    doc = json.loads(path.read_text())
+    renderers = list(dict.fromkeys((r["renderer"], r["variant"]) for r in doc["runs"]))
+    write_report(out, doc["meta"], doc["runs"], renderers, doc["checks"])
 
 
 if __name__ == "__main__":
