@@ -3,8 +3,9 @@
 //! 1, 2, 4 ... samples per pixel, each a whole `magg-host render --in-process` as a user waits
 //! for it; each image's relative mean squared error against a reference gives one point of a
 //! log-log curve. Curves of other renderers join it from `bench/peers/`' results when those
-//! were run (Mitsuba 3's `mitsuba-results.json`); the time each needs to reach relMSE 1e-2
-//! and 1e-3 is read off the curves by log-log interpolation.
+//! were run (Mitsuba 3's `mitsuba-results.json`, Blender Cycles' `cycles-results.json`, both
+//! optional: a fresh clone has neither); the time each needs to reach relMSE 1e-2 and 1e-3 is
+//! read off the curves by log-log interpolation.
 
 use std::{
     io::Write,
@@ -36,6 +37,8 @@ pub struct ErrorReport {
     pub scene: PathBuf,
     pub reference: PathBuf,
     pub curves: Vec<Curve>,
+    /// The peer result files the curves after magg's were read from.
+    pub peer_files: Vec<PathBuf>,
     /// Per curve: wall seconds to relMSE 1e-2 and 1e-3 (None when the curve cannot say).
     pub time_to: Vec<(String, Option<f64>, Option<f64>)>,
 }
@@ -49,8 +52,29 @@ pub struct ErrorConfig {
     pub max_spp: u32,
     /// Extra render flags (threads, integrator...).
     pub render_args: Vec<String>,
-    /// A `mitsuba-results.json` of `bench/peers/mitsuba.py`, when present.
+    /// A `mitsuba-results.json` of `bench/peers/mitsuba.py`, when present; the other peers'
+    /// results ([`PEER_RESULTS`]) are looked for in the same folder.
     pub peers: Option<PathBuf>,
+}
+
+/// The result files of the `bench/peers/` scripts that carry error curves, in the order
+/// their curves are drawn: each is a JSON object whose `runs` rows have `renderer`,
+/// `variant`, `spp`, `wall_s`, `render_s` and `rel_mse`.
+pub const PEER_RESULTS: [&str; 2] = ["mitsuba-results.json", "cycles-results.json"];
+
+/// The peer result files to read: `given` and the known ones beside it, those that exist,
+/// each once. The command line names one file (Mitsuba's, by default); Cycles' sits next to
+/// it because both scripts write to the same output folder.
+pub fn peer_files(given: &Path) -> Vec<PathBuf> {
+    let mut files = vec![given.to_path_buf()];
+    for name in PEER_RESULTS {
+        let beside = given.with_file_name(name);
+        if !files.contains(&beside) {
+            files.push(beside);
+        }
+    }
+    files.retain(|f| f.is_file());
+    files
 }
 
 /// Seconds to reach `target` relMSE: log(time) interpolated linearly in log(relMSE) between
@@ -130,8 +154,9 @@ pub fn error_sweep(
         name: "magg (in-process)".into(),
         points,
     }];
-    if let Some(peers) = config.peers.as_deref().filter(|p| p.is_file()) {
-        curves.extend(peer_curves(peers)?);
+    let peer_files = config.peers.as_deref().map(peer_files).unwrap_or_default();
+    for file in &peer_files {
+        curves.extend(peer_curves(file)?);
     }
     let time_to = curves
         .iter()
@@ -148,6 +173,7 @@ pub fn error_sweep(
         scene: config.scene.clone(),
         reference: config.reference.clone(),
         curves,
+        peer_files,
         time_to,
     };
     let mut f = std::fs::File::create(dir.join("error.csv")).map_err(folder)?;
@@ -181,7 +207,8 @@ pub fn error_sweep(
     Ok(report)
 }
 
-/// The peers' rows of `bench/peers/mitsuba.py`'s results, a curve per renderer and variant.
+/// The peers' rows of a `bench/peers/` script's results, a curve per renderer and variant;
+/// the script's own magg rows are left out (the sweep's magg curve is this run's).
 fn peer_curves(path: &Path) -> Result<Vec<Curve>, crate::LabError> {
     let text = std::fs::read(path).map_err(crate::LabError::folder(path))?;
     let v: serde_json::Value = serde_json::from_slice(&text)
@@ -238,12 +265,21 @@ pub fn table(r: &ErrorReport) -> String {
 }
 
 fn report_md(r: &ErrorReport) -> String {
-    let peers = if r.curves.len() > 1 {
-        "Peer curves come from `bench/peers/mitsuba.py` (its own run, same machine).".to_string()
-    } else {
-        "No peer results were found (run `python3 bench/peers/mitsuba.py` first to add \
-         Mitsuba 3's curves)."
+    let peers = if r.peer_files.is_empty() {
+        "No peer results were found (run `python3 bench/peers/mitsuba.py` or \
+         `python3 bench/peers/cycles.py` first to add Mitsuba 3's or Blender Cycles' curves)."
             .to_string()
+    } else {
+        let files: Vec<String> = r
+            .peer_files
+            .iter()
+            .map(|f| format!("`{}`", f.display()))
+            .collect();
+        format!(
+            "Peer curves come from {} (each its script's own run on this machine, at its \
+             own time: compare within a file, or re-run them together).",
+            files.join(", ")
+        )
     };
     format!(
         "# Run time against error\n\n\
@@ -292,6 +328,89 @@ mod tests {
             curves[0].points.iter().map(|p| p.spp).collect::<Vec<_>>(),
             [16, 64]
         );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn cycles_results_beside_mitsubas_add_a_curve_and_a_row_with_ratios() {
+        let dir = std::env::temp_dir().join(format!("magg-peers-cycles-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mitsuba = dir.join("mitsuba-results.json");
+        // A fresh clone: no peer results at all.
+        assert!(peer_files(&mitsuba).is_empty());
+        // Only Cycles was run: its file is found beside the (absent) Mitsuba one.
+        let cycles = dir.join("cycles-results.json");
+        let json = serde_json::json!({"runs": [
+            {"renderer": "Cycles", "variant": "CPU 2 threads", "spp": 2, "wall_s": 4.0, "render_s": 1.0, "rel_mse": 1e-2},
+            {"renderer": "magg", "variant": "in-process", "spp": 2, "wall_s": 1.0, "render_s": 0.5, "rel_mse": 1e-2},
+            {"renderer": "Cycles", "variant": "CPU 2 threads", "spp": 1, "wall_s": 2.0, "render_s": 0.5, "rel_mse": 1e-1},
+            {"renderer": "Cycles", "variant": "CPU 2 threads", "spp": 4, "wall_s": 8.0, "render_s": 2.0, "rel_mse": 1e-3}
+        ]});
+        std::fs::write(&cycles, json.to_string()).unwrap();
+        assert_eq!(peer_files(&mitsuba), std::slice::from_ref(&cycles));
+        // Both: Mitsuba's first, each file once even when the Cycles one is the given one.
+        let json = serde_json::json!({"runs": [
+            {"renderer": "Mitsuba", "variant": "llvm_ad_rgb", "spp": 16, "wall_s": 1.0, "render_s": 0.5, "rel_mse": 1e-2}
+        ]});
+        std::fs::write(&mitsuba, json.to_string()).unwrap();
+        assert_eq!(peer_files(&mitsuba), [mitsuba.clone(), cycles.clone()]);
+        assert_eq!(peer_files(&cycles), [cycles.clone(), mitsuba.clone()]);
+
+        let curves = peer_curves(&cycles).unwrap();
+        assert_eq!(
+            curves.len(),
+            1,
+            "the script's own magg rows are not a peer curve"
+        );
+        assert_eq!(curves[0].name, "Cycles CPU 2 threads");
+        assert_eq!(
+            curves[0].points.iter().map(|p| p.spp).collect::<Vec<_>>(),
+            [1, 2, 4]
+        );
+        let magg = Curve {
+            name: "magg (in-process)".into(),
+            points: vec![
+                ErrorPoint {
+                    spp: 1,
+                    wall_s: 1.0,
+                    render_s: 0.5,
+                    rel_mse: 1e-2,
+                },
+                ErrorPoint {
+                    spp: 4,
+                    wall_s: 2.0,
+                    render_s: 1.5,
+                    rel_mse: 1e-3,
+                },
+            ],
+        };
+        let mut all = vec![magg];
+        all.extend(curves);
+        let time_to = all
+            .iter()
+            .map(|c| {
+                let pts: Vec<(f64, f64)> = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
+                (
+                    c.name.clone(),
+                    time_to_reach(&pts, 1e-2),
+                    time_to_reach(&pts, 1e-3),
+                )
+            })
+            .collect();
+        let report = ErrorReport {
+            scene: "s.gltf".into(),
+            reference: "r.exr".into(),
+            curves: all,
+            peer_files: vec![cycles.clone()],
+            time_to,
+        };
+        let t = table(&report);
+        // Cycles: 4 s to 1e-2 and 8 s to 1e-3; magg 1 s and 2 s: ratios 0.25 both.
+        assert!(
+            t.contains("| Cycles CPU 2 threads | 4.00 | 8.00 | 0.25 | 0.25 |"),
+            "{t}"
+        );
+        assert!(report_md(&report).contains("cycles-results.json"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
