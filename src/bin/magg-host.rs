@@ -155,7 +155,8 @@ struct ErrorArgs {
     /// The full sweep, to 4096 spp (about 8 minutes on 2 cores).
     #[arg(long)]
     full: bool,
-    /// Results of bench/peers/mitsuba.py to plot beside magg's, when the file exists.
+    /// Results of bench/peers/mitsuba.py to plot beside magg's, when the file exists; the
+    /// results of bench/peers/cycles.py are read from the same folder.
     #[arg(long, default_value = "bench/peers/out/mitsuba-results.json")]
     peers: PathBuf,
     /// Further render flags for magg's runs.
