@@ -232,6 +232,65 @@ fn section(part: &Part, out: &Path, output: &str, ok: bool, seconds: f64) -> Str
     s
 }
 
+/// `experiment links`'s `report.md`: the paper's sentences, whether the one-packet times
+/// follow its formula, the tables and both figures.
+pub fn write_links_report(dir: &Path, tables: &str) -> Result<(), crate::LabError> {
+    let quote = PARTS[0].quote;
+    let mut s = format!(
+        "# Transfer times by serial link and DMA (the paper's figures 1.5 and 1.6)\n\n> {quote}\n\n"
+    );
+    if let Some(verdict) = formula_verdict(tables) {
+        s += &verdict;
+    }
+    if let Some(verdict) = gpu_count_verdict(tables) {
+        s += &verdict;
+    }
+    s += tables.trim_end();
+    s += "\n\n![figure 1.5: one node active](fig1.5-one-node.png)\n\n\
+          ![figure 1.6: 16 or 80 nodes at once](fig1.6-many-nodes.png)\n";
+    let path = dir.join("report.md");
+    scene_io::image_io::write_atomic(&path, s.as_bytes())?;
+    Ok(())
+}
+
+/// For `experiment links`: whether 80 nodes at once on five cards take about what 16 at once on
+/// one card take (the paper: "the number of GPU has only a little effect"), from the mean
+/// DMA times of the two rows, size by size.
+fn gpu_count_verdict(tables: &str) -> Option<String> {
+    let row = |prefix: &str| -> Option<Vec<f64>> {
+        let line = tables
+            .lines()
+            .find(|l| l.starts_with(prefix) && l.contains("| Dma |"))?;
+        Some(
+            line.split('|')
+                .skip(3)
+                .filter_map(|c| c.trim().parse::<f64>().ok())
+                .collect(),
+        )
+    };
+    let (one, five) = (row("| 16 nodes")?, row("| 80 nodes")?);
+    if one.is_empty() || one.len() != five.len() {
+        return None;
+    }
+    let ratios: Vec<f64> = one.iter().zip(&five).map(|(a, b)| b / a).collect();
+    let worst = ratios.iter().fold(1.0f64, |w, r| w.max(*r).max(1.0 / r));
+    Some(format!(
+        "**Finding (the number of cards): {}.** By DMA, 80 render nodes at once on five cards \
+         took {} the time of 16 at once on one card, size by size (a little effect read as \
+         within 1.5x).\n\n",
+        if worst <= 1.5 {
+            "reproduced"
+        } else {
+            "not reproduced"
+        },
+        ratios
+            .iter()
+            .map(|r| format!("{r:.2}x"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    ))
+}
+
 /// For `experiment links`: whether the one-packet times follow the paper's formula, from the
 /// error column of its table (`| d_row | d_col | measured | formula | error |`).
 fn formula_verdict(output: &str) -> Option<String> {
@@ -384,6 +443,17 @@ mod tests {
             "{v}"
         );
         assert!(formula_verdict("nothing").is_none());
+    }
+
+    #[test]
+    fn the_card_count_verdict_compares_16_and_80_nodes() {
+        let t = "| 16 nodes at once (card 0) | Dma | 2894 | 31460 |\n\
+                 | 80 nodes at once (all) | Dma | 12085 | 31442 |\n";
+        let v = gpu_count_verdict(t).unwrap();
+        assert!(
+            v.contains("not reproduced") && v.contains("4.18x, 1.00x"),
+            "{v}"
+        );
     }
 
     #[test]

@@ -171,6 +171,10 @@ struct BalanceArgs {
     /// Subscreens of the dynamic and adaptive runs.
     #[arg(long, default_value_t = 640)]
     subscreens: u32,
+    /// The full size (when no render flags are given): 480x270 at 16 spp and 2000
+    /// subscreens (about 30 s on 2 cores; the default takes about 15 s).
+    #[arg(long)]
+    full: bool,
 }
 
 /// Render arguments passed through to every run, e.g. `-- SCENE --spp 16`.
@@ -291,6 +295,10 @@ struct LinksArgs {
     /// Folder for the CSV files and the plot.
     #[arg(long, default_value = "out/links")]
     out: PathBuf,
+    /// The full size: sizes 640 B to 80 KiB, 20 transfers per node and size, 100 probes
+    /// (about 3 minutes on 2 cores; the default takes about 20 s).
+    #[arg(long)]
+    full: bool,
 }
 
 #[derive(Args)]
@@ -1149,15 +1157,23 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 .unwrap_or_else(|| lab::runs::out_dir("load-balance"));
             let cluster: Vec<String> = a.run.cluster.split_whitespace().map(String::from).collect();
             // The small default: the demo scene, small enough for a few minutes on 2 cores.
-            let render = if a.run.render.is_empty() {
-                ["--width", "160", "--height", "120", "--spp", "16"]
-                    .map(String::from)
-                    .to_vec()
-            } else {
-                a.run.render
+            let (render, subscreens) = match (a.run.render.is_empty(), a.full) {
+                (true, false) => (
+                    ["--width", "160", "--height", "120", "--spp", "16"]
+                        .map(String::from)
+                        .to_vec(),
+                    a.subscreens,
+                ),
+                (true, true) => (
+                    ["--width", "480", "--height", "270", "--spp", "16"]
+                        .map(String::from)
+                        .to_vec(),
+                    2000,
+                ),
+                (false, _) => (a.run.render, a.subscreens),
             };
             let r =
-                lab::balance::load_balance(&own_program()?, &render, &cluster, a.subscreens, &dir)?;
+                lab::balance::load_balance(&own_program()?, &render, &cluster, subscreens, &dir)?;
             println!("{}", lab::balance::table(&r));
             println!("wrote {}/report.md", dir.display());
             Ok(())
@@ -1237,18 +1253,25 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 .cluster
                 .config()?
                 .with_model(None, Some(args.time_scale));
+            let (sizes, count, probes) = if args.full {
+                ((0..8).map(|i| 640u32 << i).collect(), 20, 100)
+            } else {
+                (args.sizes, args.count, args.probes)
+            };
             let config = lab::experiment::LinksConfig {
                 cluster,
-                sizes: args.sizes,
-                count: args.count,
-                probes: args.probes,
+                sizes,
+                count,
+                probes,
                 out_dir: args.out.clone(),
             };
             let report =
                 runtime()?.block_on(lab::experiment::links(&config, &|m| tracing::info!("{m}")))?;
-            println!("{}", lab::experiment::tables(&report));
+            let tables = lab::experiment::tables(&report);
+            println!("{tables}");
+            lab::all::write_links_report(&args.out, &tables)?;
             println!(
-                "wrote {0}/one_way.csv, {0}/transfers.csv, {0}/links.json, {0}/fig1.5-one-node.png and {0}/fig1.6-many-nodes.png",
+                "wrote {0}/one_way.csv, {0}/transfers.csv, {0}/links.json, {0}/fig1.5-one-node.png, {0}/fig1.6-many-nodes.png and {0}/report.md",
                 args.out.display()
             );
             Ok(())
