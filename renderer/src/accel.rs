@@ -239,14 +239,17 @@ impl Bvh8 {
     }
 }
 
+const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
+
 /// Which of the eight children the ray enters within [0, tmax], and where it enters.
 /// `tmax_wide` is tmax widened by [`WIDEN`].
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, tmax_wide: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
-    let plane = |which: usize, axis: usize, off: &[F32x8; 3]| {
-        // SAFETY: `RayQuery::planes` are below 6, the number of plane arrays.
-        let p = unsafe { n.planes.get_unchecked(which) };
+    let plane = |offset: usize, axis: usize, off: &[F32x8; 3]| {
+        // SAFETY: `RayQuery::planes` are byte offsets of whole plane arrays within the six
+        // of `planes` (multiples of their size, below six times it).
+        let p = unsafe { &*n.planes.as_ptr().byte_add(offset) };
         F32x8::load(p).mul_add(q.inv8[axis], off[axis])
     };
     let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
