@@ -5,7 +5,7 @@ use glam::{Vec2, Vec3, Vec3A};
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    math::{PI, luminance, safe_sqrt},
+    math::{PI, luminance, safe_sqrt, sincos_turn},
     scene::SceneHeader,
     source::{DataError, SceneData},
     texture,
@@ -87,8 +87,8 @@ pub const UNIFORM_SPHERE_PDF: f32 = 1.0 / (4.0 * PI);
 pub fn uniform_sphere(u: (f32, f32)) -> Vec3 {
     let z = 1.0 - 2.0 * u.0;
     let r = safe_sqrt(1.0 - z * z);
-    let phi = 2.0 * PI * u.1;
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    let (sin, cos) = sincos_turn(u.1);
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// A point on a light seen from a shading point.
