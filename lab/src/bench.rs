@@ -93,10 +93,7 @@ fn big_scene(config: &BenchConfig) -> Result<(String, SceneDesc), crate::LabErro
 /// Closest-hit rays per second on this thread, and the fraction that hit.
 fn trace_rate(scene: &SceneHeader, data: &MemoryData, rays: &[Ray]) -> (f64, f64) {
     let tracer = Tracer::new(scene, data);
-    let key = AlphaKey {
-        sampler: Sampler::new(0, 0, 0, 0),
-        bounce: 0,
-    };
+    let key = AlphaKey::new(&Sampler::new(0, 0, 0, 0), 0);
     let start = Instant::now();
     let mut hits = 0usize;
     for r in rays {

@@ -141,10 +141,7 @@ fn cast<D: SceneData>(
     out: &mut [f32],
 ) -> Result<f64, RaysError> {
     let tracer = Tracer::new(scene, data);
-    let key = AlphaKey {
-        sampler: Sampler::new(0, 0, 0, 0),
-        bounce: 0,
-    };
+    let key = AlphaKey::new(&Sampler::new(0, 0, 0, 0), 0);
     let start = Instant::now();
     for (r, o) in rays.iter().zip(out.iter_mut()) {
         *o = if any_hit {

@@ -239,14 +239,17 @@ impl Bvh8 {
     }
 }
 
+const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
+
 /// Which of the eight children the ray enters within [0, tmax], and where it enters.
 /// `tmax_wide` is tmax widened by [`WIDEN`].
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, tmax_wide: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
-    let plane = |which: usize, axis: usize, off: &[F32x8; 3]| {
-        // SAFETY: `RayQuery::planes` are below 6, the number of plane arrays.
-        let p = unsafe { n.planes.get_unchecked(which) };
+    let plane = |offset: usize, axis: usize, off: &[F32x8; 3]| {
+        // SAFETY: `RayQuery::planes` are byte offsets of whole plane arrays within the six
+        // of `planes` (multiples of their size, below six times it).
+        let p = unsafe { &*n.planes.as_ptr().byte_add(offset) };
         F32x8::load(p).mul_add(q.inv8[axis], off[axis])
     };
     let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
@@ -656,6 +659,12 @@ impl Bvh8 {
         best: &mut Closest,
         mut accept: A,
     ) -> bool {
+        // A chunk of one leaf (up to four triangles: a wall, a quad light) was entered
+        // through the top-level box of the chunk, which holds the leaf's: its own tree would
+        // only test that box again. Boxes only prune, so skipping one changes no hit.
+        if let [b] = self.leaves.as_slice() {
+            return closest_in_leaf(q, b, chunk, best, &mut accept);
+        }
         let mut found = false;
         let mut tmax = best.t;
         walk::<true>(&self.nodes, q, &mut tmax, |leaf, tmax| {
@@ -674,6 +683,11 @@ impl Bvh8 {
     /// says stop. Each triangle is reported at most once.
     #[inline(always)]
     pub fn each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
+        // One leaf: straight to it, as in `closest`.
+        if let [b] = self.leaves.as_slice() {
+            hits_in_leaf(q, b, tmax, &mut f);
+            return;
+        }
         let mut t = tmax;
         walk::<false>(&self.nodes, q, &mut t, |leaf, _| {
             match self.leaves.get(leaf as usize) {
@@ -808,6 +822,50 @@ mod tests {
             }
             assert_eq!(got.map(|(i, h)| (h.t, i)), brute);
         }
+    }
+
+    /// A chunk of one leaf is tested without its tree: the same hits as every triangle
+    /// tested on its own, misses included, for the closest and the any-hit query.
+    #[test]
+    fn a_chunk_of_one_leaf_finds_what_brute_force_finds() {
+        let mut m = grid(1, 0.0);
+        m.positions
+            .extend([Vec3::new(0.2, 0.1, 0.5), Vec3::new(0.9, 0.3, 0.4)]);
+        m.positions.push(Vec3::new(0.5, 0.9, 0.6));
+        m.triangles.push([4, 5, 6]);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        assert_eq!(chunk.accel().leaves.len(), 1);
+        let mut r = Lcg(11);
+        let mut hits = 0;
+        for _ in 0..2000 {
+            let o = r.vec(2.0);
+            let d = (Vec3::new(r.next(), r.next(), r.next() - 0.5) - o).normalize();
+            let q = RayQuery::new(&Ray::infinite(o, d));
+            let mut tmax = f32::INFINITY;
+            let got = chunk.intersect(&q, &mut tmax).map(|(i, h)| (h.t, i));
+            let mut brute: Option<(f32, u32)> = None;
+            let mut all_hits = Vec::new();
+            for (i, p) in chunk.tri_positions().iter().enumerate() {
+                let (a, b, c) = crate::chunk::tri_points(p);
+                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY) {
+                    all_hits.push(i as u32);
+                    if brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j)) {
+                        brute = Some((h.t, i as u32));
+                    }
+                }
+            }
+            assert_eq!(got, brute);
+            let mut seen = Vec::new();
+            chunk.for_each_hit(&q, f32::INFINITY, |tri, _| {
+                seen.push(tri);
+                Visit::Continue
+            });
+            seen.sort();
+            assert_eq!(seen, all_hits);
+            hits += usize::from(got.is_some());
+        }
+        assert!(hits > 200, "the test should meet many hits, met {hits}");
     }
 
     #[test]

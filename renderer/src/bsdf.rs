@@ -30,7 +30,7 @@ use glam::Vec3;
 
 use crate::{
     material::ShadingParams,
-    math::{Frame, INV_PI, PI, luminance, safe_sqrt},
+    math::{Frame, INV_PI, PI, luminance, safe_sqrt, sincos_quarter_pi, sincos_turn},
 };
 
 /// Below this alpha (= roughness^2) a GGX lobe is treated as a delta distribution.
@@ -141,9 +141,9 @@ fn sample_visible_normal(wo: Vec3, alpha: f32, u: (f32, f32)) -> Vec3 {
     };
     let t2 = vh.cross(t1);
     let r = u.0.sqrt();
-    let phi = 2.0 * PI * u.1;
-    let p1 = r * phi.cos();
-    let mut p2 = r * phi.sin();
+    let (sin, cos) = sincos_turn(u.1);
+    let p1 = r * cos;
+    let mut p2 = r * sin;
     let s = 0.5 * (1.0 + vh.z);
     p2 = (1.0 - s) * safe_sqrt(1.0 - p1 * p1) + s * p2;
     let nh = t1 * p1 + t2 * p2 + vh * safe_sqrt(1.0 - p1 * p1 - p2 * p2);
@@ -259,14 +259,17 @@ fn refract(wo: Vec3, m: Vec3, eta: f32) -> Option<Vec3> {
 fn cosine_hemisphere(u: (f32, f32)) -> Vec3 {
     // Concentric disk mapping (Shirley-Chiu), lifted to the hemisphere.
     let (a, b) = (2.0 * u.0 - 1.0, 2.0 * u.1 - 1.0);
-    let (r, phi) = if a == 0.0 && b == 0.0 {
+    // The angle is pi/4 (b/a), or pi/2 - pi/4 (a/b), whose cosine and sine are the sine and
+    // cosine of pi/4 (a/b): one short polynomial sincos either way.
+    let (x, y) = if a == 0.0 && b == 0.0 {
         (0.0, 0.0)
     } else if a.abs() > b.abs() {
-        (a, PI / 4.0 * (b / a))
+        let (sin, cos) = sincos_quarter_pi(b / a);
+        (a * cos, a * sin)
     } else {
-        (b, PI / 2.0 - PI / 4.0 * (a / b))
+        let (sin, cos) = sincos_quarter_pi(a / b);
+        (b * sin, b * cos)
     };
-    let (x, y) = (r * phi.cos(), r * phi.sin());
     Vec3::new(x, y, safe_sqrt(1.0 - x * x - y * y))
 }
 

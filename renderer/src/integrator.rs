@@ -97,7 +97,7 @@ pub fn radiance<D: SceneData>(
     t: &Tracer<D>,
     settings: &RenderSettings,
     ray: Ray,
-    sampler: &mut Sampler,
+    sampler: &mut Sampler<'_>,
 ) -> Result<Vec3, DataError> {
     let max_depth = settings.max_depth;
     match settings.integrator {
@@ -184,7 +184,7 @@ const ROULETTE_MAX_SURVIVAL: f32 = 0.95;
 fn path<D: SceneData>(
     t: &Tracer<D>,
     mut ray: Ray,
-    sampler: &mut Sampler,
+    sampler: &mut Sampler<'_>,
     max_depth: u32,
     clamp: f32,
 ) -> Result<Vec3, DataError> {
@@ -198,12 +198,10 @@ fn path<D: SceneData>(
     // mirror or glass bounce came by a caustic path.
     let mut scattered_rough = false;
 
+    let sample = sampler.key();
     for bounce in 0..max_depth {
         sampler.start_bounce(bounce);
-        let key = AlphaKey {
-            sampler: *sampler,
-            bounce,
-        };
+        let key = AlphaKey { sample, bounce };
         let Some(hit) = t.closest(&ray, key)? else {
             // The ray leaves the scene: the environment, weighted against light sampling.
             if let Some(env) = scene.environment_light {
@@ -340,7 +338,7 @@ struct Branch {
 fn whitted<D: SceneData>(
     t: &Tracer<D>,
     ray: Ray,
-    sampler: &mut Sampler,
+    sampler: &mut Sampler<'_>,
     branch: Branch,
     budget: &mut Budget,
 ) -> Result<Vec3, DataError> {
@@ -352,10 +350,7 @@ fn whitted<D: SceneData>(
     } = branch;
     let scene = t.scene;
     sampler.start_bounce(depth);
-    let key = AlphaKey {
-        sampler: *sampler,
-        bounce: depth,
-    };
+    let key = AlphaKey::new(sampler, depth);
     let Some(hit) = t.closest(&ray, key)? else {
         return Ok(scene.environment.radiance(Vec3::from(ray.dir).normalize()));
     };

@@ -5,7 +5,7 @@ use glam::{Vec2, Vec3, Vec3A};
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    math::{PI, luminance, safe_sqrt},
+    math::{PI, luminance, safe_sqrt, sincos_turn},
     scene::SceneHeader,
     source::{DataError, SceneData},
     texture,
@@ -87,8 +87,8 @@ pub const UNIFORM_SPHERE_PDF: f32 = 1.0 / (4.0 * PI);
 pub fn uniform_sphere(u: (f32, f32)) -> Vec3 {
     let z = 1.0 - 2.0 * u.0;
     let r = safe_sqrt(1.0 - z * z);
-    let phi = 2.0 * PI * u.1;
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    let (sin, cos) = sincos_turn(u.1);
+    Vec3::new(r * cos, r * sin, z)
 }
 
 /// A point on a light seen from a shading point.
@@ -109,11 +109,44 @@ pub struct LightSample {
 /// The largest f32 below 1.
 const ONE_BELOW_ONE: f32 = 1.0 - f32::EPSILON / 2.0;
 
-/// Cumulative distribution over lights by power.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+/// The distribution of lights by power: its cumulative sums (what travels and is checked,
+/// see `SceneHeader::validate`) and, made from them wherever the distribution is built or
+/// decoded, an alias table (Walker 1977, Vose 1991) that picks a light in constant time
+/// however many there are: one bucket per light, each keeping its own light with some
+/// probability and giving another otherwise.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(from = "CdfForm", into = "CdfForm")]
 pub struct LightDistribution {
     /// Normalised running sums; the last is 1.
     pub cdf: Vec<f32>,
+    /// Per bucket: the probability of keeping its own light, and the light it gives
+    /// otherwise (always below the number of lights).
+    alias: Vec<(f32, u32)>,
+}
+
+/// What a [`LightDistribution`] is on the wire: its cumulative sums alone.
+#[derive(Clone, Serialize, Deserialize)]
+struct CdfForm {
+    cdf: Vec<f32>,
+}
+
+impl From<CdfForm> for LightDistribution {
+    fn from(form: CdfForm) -> LightDistribution {
+        LightDistribution::from_cdf(form.cdf)
+    }
+}
+
+impl From<LightDistribution> for CdfForm {
+    fn from(d: LightDistribution) -> CdfForm {
+        CdfForm { cdf: d.cdf }
+    }
+}
+
+/// The alias table is made from the sums, so they say everything.
+impl PartialEq for LightDistribution {
+    fn eq(&self, other: &Self) -> bool {
+        self.cdf == other.cdf
+    }
 }
 
 impl LightDistribution {
@@ -123,11 +156,11 @@ impl LightDistribution {
             .map(|w| if w.is_finite() && *w > 0.0 { *w } else { 0.0 })
             .sum();
         if weights.is_empty() {
-            return LightDistribution { cdf: Vec::new() };
+            return LightDistribution::default();
         }
         let mut acc = 0.0f64;
         let n = weights.len() as f64;
-        let cdf = weights
+        let mut cdf = weights
             .iter()
             .map(|w| {
                 let w = if w.is_finite() && *w > 0.0 { *w } else { 0.0 };
@@ -135,11 +168,50 @@ impl LightDistribution {
                 acc.min(1.0) as f32
             })
             .collect::<Vec<_>>();
-        let mut cdf = cdf;
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        LightDistribution { cdf }
+        LightDistribution::from_cdf(cdf)
+    }
+
+    /// The distribution of these sums, with its alias table. Sums from the wire are checked
+    /// only later, so any numbers give a table (of the probabilities that are finite and
+    /// positive, uniform when none is) and never a panic.
+    fn from_cdf(cdf: Vec<f32>) -> LightDistribution {
+        let n = cdf.len();
+        let pmf: Vec<f64> = (0..n)
+            .map(|i| {
+                let p = cdf[i] as f64 - if i == 0 { 0.0 } else { cdf[i - 1] as f64 };
+                if p.is_finite() && p > 0.0 { p } else { 0.0 }
+            })
+            .collect();
+        let total: f64 = pmf.iter().sum();
+        // Each light's share times n: buckets of 1 are full. Vose's method fills the
+        // buckets of the lights below 1 from those above, one light each.
+        let mut scaled: Vec<f64> = pmf
+            .iter()
+            .map(|&p| {
+                if total > 0.0 {
+                    p * n as f64 / total
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let mut alias: Vec<(f32, u32)> = (0..n as u32).map(|i| (1.0, i)).collect();
+        let (mut small, mut large): (Vec<usize>, Vec<usize>) =
+            (0..n).partition(|&i| scaled[i] < 1.0);
+        while let (Some(&s), Some(&l)) = (small.last(), large.last()) {
+            small.pop();
+            alias[s] = (scaled[s] as f32, l as u32);
+            scaled[l] -= 1.0 - scaled[s];
+            if scaled[l] < 1.0 {
+                large.pop();
+                small.push(l);
+            }
+        }
+        // What is left is 1 but for rounding: those buckets keep their own light.
+        LightDistribution { cdf, alias }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -148,30 +220,32 @@ impl LightDistribution {
 
     /// Chooses a light; returns its index and probability.
     pub fn sample(&self, u: f32) -> Option<(usize, f32)> {
-        if self.cdf.is_empty() {
-            return None;
-        }
-        let i = self
-            .cdf
-            .partition_point(|&c| c <= u)
-            .min(self.cdf.len() - 1);
-        Some((i, self.pmf(i)))
+        self.sample_reusing(u).map(|(i, pmf, _)| (i, pmf))
     }
 
-    /// Chooses a light like [`LightDistribution::sample`] and also returns `u` stretched
-    /// back to [0, 1) within the chosen light's share of the interval. That number is
-    /// uniform and independent of the choice, so it can place the point on the light: one
-    /// stratified 2D draw then covers every light together (the two triangles of a quad
-    /// light get the draw's stratification between them instead of a coin toss each).
+    /// Chooses a light like [`LightDistribution::sample`] and also returns a number that is
+    /// uniform in [0, 1) and independent of the choice (the part of `u` the choice did not
+    /// use), so it can place the point on the light: one stratified 2D draw then covers
+    /// every light together (the two triangles of a quad light get the draw's
+    /// stratification between them instead of a coin toss each).
+    #[inline]
     pub fn sample_reusing(&self, u: f32) -> Option<(usize, f32, f32)> {
-        let (i, pmf) = self.sample(u)?;
-        let lo = if i == 0 { 0.0 } else { self.cdf[i - 1] };
-        let reused = if pmf > 0.0 {
-            ((u - lo) / pmf).clamp(0.0, ONE_BELOW_ONE)
+        let n = self.alias.len();
+        if n == 0 {
+            return None;
+        }
+        // In f64, u * n and its fraction are exact for any number of lights an index holds.
+        let scaled = u as f64 * n as f64;
+        let bucket = (scaled as usize).min(n - 1);
+        let frac = scaled - bucket as f64;
+        let (keep, other) = self.alias[bucket];
+        let keep = keep as f64;
+        let (i, reused) = if frac < keep {
+            (bucket, frac / keep)
         } else {
-            0.0
+            (other as usize, (frac - keep) / (1.0 - keep))
         };
-        Some((i, pmf, reused))
+        Some((i, self.pmf(i), (reused as f32).clamp(0.0, ONE_BELOW_ONE)))
     }
 
     pub fn pmf(&self, i: usize) -> f32 {
@@ -390,6 +464,22 @@ impl Light {
 mod tests {
     use super::*;
 
+    /// Sweeps `u` over a fine grid: how often each light is chosen, and a histogram of the
+    /// reused numbers of each light.
+    fn sweep(d: &LightDistribution, n: usize) -> (Vec<f64>, Vec<[usize; 4]>) {
+        let lights = d.cdf.len();
+        let (mut freq, mut hist) = (vec![0.0; lights], vec![[0usize; 4]; lights]);
+        for k in 0..n {
+            let u = (k as f64 + 0.5) as f32 / n as f32;
+            let (i, pmf, reused) = d.sample_reusing(u).unwrap();
+            assert_eq!(pmf, d.pmf(i));
+            assert!((0.0..1.0).contains(&reused), "{reused}");
+            freq[i] += 1.0 / n as f64;
+            hist[i][(reused * 4.0) as usize] += 1;
+        }
+        (freq, hist)
+    }
+
     #[test]
     fn distribution_follows_weights() {
         let d = LightDistribution::new(&[1.0, 3.0, 0.0, 4.0]);
@@ -397,23 +487,57 @@ mod tests {
         assert!((d.pmf(1) - 0.375).abs() < 1e-6);
         assert_eq!(d.pmf(2), 0.0);
         assert!((d.pmf(3) - 0.5).abs() < 1e-6);
+        let (freq, _) = sweep(&d, 1 << 16);
+        for (i, f) in freq.iter().enumerate() {
+            assert!((f - d.pmf(i) as f64).abs() < 1e-4, "light {i}: {f}");
+        }
         assert_eq!(d.sample(0.0).unwrap().0, 0);
-        assert_eq!(d.sample(0.2).unwrap().0, 1);
-        assert_eq!(d.sample(0.9999).unwrap().0, 3);
+        assert_ne!(d.sample(0.999_999_94).unwrap().0, 2);
     }
 
     #[test]
     fn reused_number_is_uniform_within_the_choice() {
+        for weights in [&[1.0, 3.0][..], &[5.0, 1.0, 1.0, 2.0, 0.5, 7.0, 3.0]] {
+            let d = LightDistribution::new(weights);
+            let n = 1 << 16;
+            let (freq, hist) = sweep(&d, n);
+            for (i, h) in hist.iter().enumerate() {
+                let per_bin = freq[i] * n as f64 / 4.0;
+                for &c in h {
+                    assert!((c as f64 - per_bin).abs() <= 2.0 + 1e-3 * per_bin, "{h:?}");
+                }
+            }
+        }
         let d = LightDistribution::new(&[1.0, 3.0]);
         assert_eq!(d.sample_reusing(0.0), Some((0, 0.25, 0.0)));
-        let (i, pmf, u) = d.sample_reusing(0.125).unwrap();
-        assert_eq!((i, pmf), (0, 0.25));
-        assert!((u - 0.5).abs() < 1e-6);
-        let (i, _, u) = d.sample_reusing(0.625).unwrap();
-        assert_eq!(i, 1);
-        assert!((u - 0.5).abs() < 1e-6);
         let (_, _, u) = d.sample_reusing(0.999_999_94).unwrap();
         assert!(u < 1.0);
+    }
+
+    /// Two equal lights (the triangles of a quad light) split `u` in halves, each reused
+    /// whole: what inverting the cumulative sums gave.
+    #[test]
+    fn equal_lights_split_the_interval_in_order() {
+        let d = LightDistribution::new(&[2.0, 2.0]);
+        assert_eq!(d.sample_reusing(0.25), Some((0, 0.5, 0.5)));
+        assert_eq!(d.sample_reusing(0.75), Some((1, 0.5, 0.5)));
+    }
+
+    /// The table is made again from the sums on decoding: the same choices on both ends.
+    #[test]
+    fn a_decoded_distribution_chooses_the_same_lights() {
+        let d = LightDistribution::new(&[5.0, 1.0, 1.0, 2.0, 0.5]);
+        // What serde does on both ends (`serde(into, from)`).
+        let back = LightDistribution::from(CdfForm::from(d.clone()));
+        for k in 0..1000 {
+            let u = k as f32 / 1000.0;
+            assert_eq!(back.sample_reusing(u), d.sample_reusing(u));
+        }
+        // Garbage sums give a table, not a panic (validation refuses them afterwards).
+        for cdf in [vec![f32::NAN, 0.5], vec![1.0, 0.2, -3.0], vec![0.0; 3]] {
+            let d = LightDistribution::from_cdf(cdf);
+            assert!(d.sample_reusing(0.7).unwrap().0 < 3);
+        }
     }
 
     #[test]

@@ -14,7 +14,7 @@ use crate::{
     camera::Camera,
     integrator::{self, IntegratorKind, WhittedLimits},
     math::luminance,
-    sampler::Sampler,
+    sampler::PixelSeeds,
     scene::SceneHeader,
     source::{DataError, SceneData, Touched},
     trace::{TraceStats, Tracer},
@@ -127,8 +127,9 @@ pub fn render_pixel<D: SceneData>(
     let mut n = 0u32;
     let batch = 8;
     let rays = camera.rays(settings.width, settings.height);
+    let seeds = PixelSeeds::new(settings.seed, x, y);
     while n < settings.spp {
-        let mut s = Sampler::new(settings.seed, x, y, n);
+        let mut s = seeds.sampler(n);
         let (du, dv) = s.pixel_2d();
         let ray = rays.ray(x as f32 + du, y as f32 + dv);
         tracer.count_camera_ray();

@@ -26,6 +26,15 @@ fn reverse(x: u32) -> u32 {
     x.reverse_bits()
 }
 
+/// Reverses the bits of two words in one 64-bit reversal: (reverse(a), reverse(b)). x86-64
+/// has no bit-reversal instruction, so each reversal is a byte swap and three rounds of
+/// masks and shifts; a 2D draw's two coordinates share theirs.
+#[inline(always)]
+fn reverse_pair(a: u32, b: u32) -> (u32, u32) {
+    let r = ((a as u64) << 32 | b as u64).reverse_bits();
+    (r as u32, (r >> 32) as u32)
+}
+
 /// A hash that only carries each bit into more significant ones (Laine and Karras 2011),
 /// so that applied to bit-reversed numbers it is an Owen scrambling: each digit of the
 /// fraction is flipped or not according to the digits before it. (Owen scrambling of a
@@ -91,6 +100,58 @@ fn unit(x: u32) -> f32 {
     (x >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
 }
 
+/// Dimensions whose seeds a [`PixelSeeds`] keeps: the camera's and those of the first eight
+/// bounces, which is where nearly all draws of a path are (Russian roulette ends most paths
+/// before); draws beyond work their seeds out each time.
+const CACHED_DIMS: usize = (CAMERA_DIMS + 8 * DIMS_PER_BOUNCE) as usize;
+
+/// The seeds of one dimension (shuffle, scramble x, scramble y) and a last word that is 1
+/// once they have been worked out.
+type DimSeeds = [u32; 4];
+
+/// What a pixel's samples share: the hash of (seed, pixel), and the seeds of each dimension,
+/// worked out on the first draw of that dimension and kept for the pixel's other samples
+/// (two splitmix64 rounds a draw otherwise, a tenth of what a sample's draws cost). Only
+/// a cache: the numbers are those of [`Sampler::new`].
+pub struct PixelSeeds {
+    pixel: u64,
+    dims: [std::cell::Cell<DimSeeds>; CACHED_DIMS],
+}
+
+impl PixelSeeds {
+    pub fn new(seed: u64, px: u32, py: u32) -> PixelSeeds {
+        PixelSeeds {
+            pixel: pixel_hash(seed, px, py),
+            dims: std::array::from_fn(|_| std::cell::Cell::new([0; 4])),
+        }
+    }
+
+    /// Sample `sample` of this pixel: the numbers of `Sampler::new(seed, px, py, sample)`.
+    #[inline]
+    pub fn sampler(&self, sample: u32) -> Sampler<'_> {
+        Sampler {
+            pixel: self.pixel,
+            cache: &self.dims,
+            sample,
+            sample_reversed: reverse(sample),
+            dim: 0,
+        }
+    }
+}
+
+fn pixel_hash(seed: u64, px: u32, py: u32) -> u64 {
+    let pixel = ((py as u64) << 32) | px as u64;
+    mix64(mix64(seed ^ 0x6a09_e667_f3bc_c909) ^ pixel)
+}
+
+/// The seeds of dimension `dim` of the pixel of hash `pixel`.
+#[inline(always)]
+fn dim_seeds(pixel: u64, dim: u32) -> DimSeeds {
+    let h = mix64(pixel ^ (dim as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    let h2 = mix64(h);
+    [h as u32, (h >> 32) as u32, h2 as u32, 1]
+}
+
 /// The numbers of one sample of one pixel.
 ///
 /// Each draw (a 1D value or a 2D pair, at a fixed dimension) is a point of an Owen-scrambled
@@ -102,26 +163,50 @@ fn unit(x: u32) -> f32 {
 /// shuffle and scramble seeds are hashes of (seed, pixel, dimension), the index is the
 /// sample's: nothing depends on who renders the pixel.
 #[derive(Clone, Copy, Debug)]
-pub struct Sampler {
+pub struct Sampler<'a> {
     /// Hash of (seed, pixel).
     pixel: u64,
+    /// Seeds of the pixel's first dimensions, shared by its samples (empty: none kept).
+    cache: &'a [std::cell::Cell<DimSeeds>],
     sample: u32,
     /// The sample index, bit-reversed (the first step of shuffling it).
     sample_reversed: u32,
     dim: u32,
 }
 
-impl Sampler {
-    pub fn new(seed: u64, px: u32, py: u32, sample: u32) -> Sampler {
-        let pixel = ((py as u64) << 32) | px as u64;
+/// What keys the draws of one sample that are not tied to a dimension ([`Sampler::keyed`]):
+/// small enough to travel with every ray the sample casts.
+#[derive(Clone, Copy, Debug)]
+pub struct SampleKey(u64);
+
+impl SampleKey {
+    /// See [`Sampler::keyed`].
+    #[inline]
+    pub fn keyed(self, bounce: u32, a: u32, b: u32) -> f32 {
+        let h = mix64(
+            self.0
+                ^ mix64(
+                    ((bounce as u64) << 32 | a as u64) ^ mix64(b as u64 ^ 0xa5a5_5a5a_dead_beef),
+                ),
+        );
+        (h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
+    }
+}
+
+impl Sampler<'static> {
+    /// A sample on its own, keeping no seeds for others (see [`PixelSeeds`] for a pixel's).
+    pub fn new(seed: u64, px: u32, py: u32, sample: u32) -> Sampler<'static> {
         Sampler {
-            pixel: mix64(mix64(seed ^ 0x6a09_e667_f3bc_c909) ^ pixel),
+            pixel: pixel_hash(seed, px, py),
+            cache: &[],
             sample,
             sample_reversed: reverse(sample),
             dim: 0,
         }
     }
+}
 
+impl Sampler<'_> {
     /// Moves to the dimensions of bounce `bounce` (0 = the camera ray's first hit).
     #[inline]
     pub fn start_bounce(&mut self, bounce: u32) {
@@ -132,10 +217,22 @@ impl Sampler {
     /// scramble y).
     #[inline(always)]
     fn seeds(&mut self) -> (u32, u32, u32) {
-        let h = mix64(self.pixel ^ (self.dim as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        let dim = self.dim;
         self.dim = self.dim.wrapping_add(1);
-        let h2 = mix64(h);
-        (h as u32, (h >> 32) as u32, h2 as u32)
+        let [shuffle, sx, sy, _] = match self.cache.get(dim as usize) {
+            Some(cell) => {
+                let cached = cell.get();
+                if cached[3] != 0 {
+                    cached
+                } else {
+                    let fresh = dim_seeds(self.pixel, dim);
+                    cell.set(fresh);
+                    fresh
+                }
+            }
+            None => dim_seeds(self.pixel, dim),
+        };
+        (shuffle, sx, sy)
     }
 
     /// The sample's index in this dimension's order: the Owen scrambling of its index.
@@ -156,10 +253,11 @@ impl Sampler {
     pub fn get_2d(&mut self) -> (f32, f32) {
         let (shuffle, sx, sy) = self.seeds();
         let index = self.shuffled(shuffle);
-        (
-            unit(reverse(laine_karras(index, sx))),
-            unit(reverse(laine_karras(sobol_second_reversed(index), sy))),
-        )
+        let (x, y) = reverse_pair(
+            laine_karras(index, sx),
+            laine_karras(sobol_second_reversed(index), sy),
+        );
+        (unit(x), unit(y))
     }
 
     /// The position of the sample within its pixel.
@@ -169,18 +267,18 @@ impl Sampler {
         self.get_2d()
     }
 
+    /// What [`SampleKey::keyed`] needs of this sample.
+    #[inline]
+    pub fn key(&self) -> SampleKey {
+        SampleKey(mix64(self.pixel ^ self.sample as u64))
+    }
+
     /// A value keyed on this sample and on arbitrary ids rather than on the dimension
     /// budget, for draws whose number is open-ended (stochastic transparency: one per
     /// surface crossed) or whose order is not fixed (traversal visits surfaces in any order).
     #[inline]
     pub fn keyed(&self, bounce: u32, a: u32, b: u32) -> f32 {
-        let h = mix64(
-            mix64(self.pixel ^ self.sample as u64)
-                ^ mix64(
-                    ((bounce as u64) << 32 | a as u64) ^ mix64(b as u64 ^ 0xa5a5_5a5a_dead_beef),
-                ),
-        );
-        (h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
+        self.key().keyed(bounce, a, b)
     }
 }
 
@@ -218,6 +316,45 @@ mod tests {
                 unit(owen(sobol_second(index), sy)),
             );
             assert_eq!(s.get_2d(), want, "sample {sample}");
+        }
+    }
+
+    /// A pixel's kept seeds give the numbers of samplers made on their own, whichever
+    /// sample draws a dimension first, past the kept dimensions too.
+    #[test]
+    fn kept_seeds_change_no_number() {
+        let seeds = PixelSeeds::new(9, 31, 7);
+        for sample in [5u32, 0, 5, 1000, 3] {
+            let mut kept = seeds.sampler(sample);
+            let mut alone = Sampler::new(9, 31, 7, sample);
+            assert_eq!(kept.pixel_2d(), alone.pixel_2d());
+            for bounce in [0u32, 1, 7, 8, 12, 63] {
+                kept.start_bounce(bounce);
+                alone.start_bounce(bounce);
+                assert_eq!(
+                    kept.get_2d(),
+                    alone.get_2d(),
+                    "sample {sample} bounce {bounce}"
+                );
+                assert_eq!(
+                    kept.get_1d(),
+                    alone.get_1d(),
+                    "sample {sample} bounce {bounce}"
+                );
+            }
+            assert_eq!(kept.keyed(2, 3, 4), alone.keyed(2, 3, 4));
+        }
+    }
+
+    #[test]
+    fn a_pair_reversal_is_two_reversals() {
+        for (a, b) in [
+            (0u32, 0u32),
+            (1, 2),
+            (0x8000_0001, 0xdead_beef),
+            (u32::MAX, 7),
+        ] {
+            assert_eq!(reverse_pair(a, b), (reverse(a), reverse(b)));
         }
     }
 

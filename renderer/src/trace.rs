@@ -11,7 +11,7 @@ use crate::{
     chunk::Chunk,
     material::{self, AlphaMode},
     ray::{Ray, RayQuery},
-    sampler::Sampler,
+    sampler::{SampleKey, Sampler},
     scene::SceneHeader,
     source::{DataError, SceneData},
     triangle::TriHit,
@@ -54,8 +54,17 @@ pub struct Hit<C> {
 /// What an alpha-tested surface needs to decide, deterministically, whether a ray passes.
 #[derive(Clone, Copy)]
 pub struct AlphaKey {
-    pub sampler: Sampler,
+    pub sample: SampleKey,
     pub bounce: u32,
+}
+
+impl AlphaKey {
+    pub fn new(sampler: &Sampler<'_>, bounce: u32) -> AlphaKey {
+        AlphaKey {
+            sample: sampler.key(),
+            bounce,
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -139,9 +148,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         Ok(match m.alpha_mode {
             AlphaMode::Opaque => false,
             AlphaMode::Mask => alpha < m.alpha_cutoff,
-            AlphaMode::Blend => {
-                key.sampler.keyed(key.bounce, chunk.header().chunk_id, tri) >= alpha
-            }
+            AlphaMode::Blend => key.sample.keyed(key.bounce, chunk.header().chunk_id, tri) >= alpha,
         })
     }
 

@@ -19,10 +19,7 @@ use renderer::{
 };
 
 fn key() -> AlphaKey {
-    AlphaKey {
-        sampler: Sampler::new(0, 0, 0, 0),
-        bounce: 0,
-    }
+    AlphaKey::new(&Sampler::new(0, 0, 0, 0), 0)
 }
 
 /// A closed, lumpy sphere: one vertex per pole, the seam's columns shared, every vertex
