@@ -18,58 +18,51 @@ struct Part {
     title: &'static str,
     /// Flags besides `--out`.
     args: &'static [&'static str],
-    /// The paper's sentence, for the parts whose own folder has no report.
-    quote: &'static str,
 }
+
+/// The paper's sentences that `experiment links` tests.
+const LINKS_QUOTE: &str = "\"In the NP network, transmitting time T (us) is approximately 310 + drow x 234 + dcol x 300 (drow, dcol: distance between NPs), on condition that the 84 bytes packet transmitted under no other process works except the communication process.\" ... \"It can be seen from this figure that the number of GPU has only a little effect on the average transfer time.\"";
 
 const PARTS: &[Part] = &[
     Part {
         name: "links",
         title: "Transfer times by serial link and DMA (figures 1.5 and 1.6)",
         args: &[],
-        quote: "\"In the NP network, transmitting time T (us) is approximately 310 + drow x 234 + dcol x 300 (drow, dcol: distance between NPs), on condition that the 84 bytes packet transmitted under no other process works except the communication process.\" ... \"It can be seen from this figure that the number of GPU has only a little effect on the average transfer time.\"",
     },
     Part {
         name: "overhead",
         title: "The cluster's own cost (no delay model)",
         args: &[],
-        quote: "",
     },
     Part {
         name: "cache",
         title: "Shape-cache size: bytes fetched and hit rate",
         args: &[],
-        quote: "",
     },
     Part {
         name: "load-balance",
         title: "Load balancing (figure 1.10)",
         args: &[],
-        quote: "",
     },
     Part {
         name: "subscreens",
         title: "Rendering time against the number of subscreens (figure 1.11)",
         args: &[],
-        quote: "",
     },
     Part {
         name: "speedup",
         title: "Parallel processing performance (figures 1.12 to 1.15)",
         args: &[],
-        quote: "",
     },
     Part {
         name: "validate",
         title: "The simulator against real renders",
         args: &[],
-        quote: "",
     },
     Part {
         name: "error",
         title: "Run time against error, beside other renderers",
         args: &[],
-        quote: "",
     },
 ];
 
@@ -102,18 +95,15 @@ pub fn all(
         std::fs::create_dir_all(&out).map_err(crate::LabError::folder(&out))?;
         tracing::info!("experiment {}", part.name);
         let t = Instant::now();
-        let o = Command::new(program)
-            .arg("experiment")
-            .arg(part.name)
-            .arg("--out")
-            .arg(&out)
-            .args(part.args)
-            .env("MAGG_LOG", "warn")
-            .output()
-            .map_err(|source| crate::runs::RunError::Start {
-                program: program.to_path_buf(),
-                source,
-            })?;
+        let o = run_quietly(
+            Command::new(program)
+                .arg("experiment")
+                .arg(part.name)
+                .arg("--out")
+                .arg(&out)
+                .args(part.args),
+            program,
+        )?;
         let seconds = t.elapsed().as_secs_f64();
         let text = format!(
             "{}{}",
@@ -134,15 +124,7 @@ pub fn all(
     let stats = dir.join("load-balance").join("dynamic.json");
     let mut timeline = String::new();
     if stats.is_file() {
-        let o = Command::new(program)
-            .arg("plot")
-            .arg(&stats)
-            .env("MAGG_LOG", "warn")
-            .output()
-            .map_err(|source| crate::runs::RunError::Start {
-                program: program.to_path_buf(),
-                source,
-            })?;
+        let o = run_quietly(Command::new(program).arg("plot").arg(&stats), program)?;
         if o.status.success() {
             timeline = "## A render's timeline\n\n\
                  The load-balance experiment's dynamic render (`magg-host plot \
@@ -178,6 +160,20 @@ pub fn all(
     Ok(results)
 }
 
+/// Runs `command` (of `program`) to its end with warnings only in its log.
+fn run_quietly(
+    command: &mut Command,
+    program: &Path,
+) -> Result<std::process::Output, crate::LabError> {
+    Ok(command
+        .env("MAGG_LOG", "warn")
+        .output()
+        .map_err(|source| crate::runs::RunError::Start {
+            program: program.to_path_buf(),
+            source,
+        })?)
+}
+
 /// One experiment's part of the report: its own report with its links made relative to the
 /// top folder, or, for the experiments that print tables, its output and plots.
 fn section(part: &Part, out: &Path, output: &str, ok: bool, seconds: f64) -> String {
@@ -197,12 +193,6 @@ fn section(part: &Part, out: &Path, output: &str, ok: bool, seconds: f64) -> Str
             }
             s += "```\n\n";
             return s;
-        }
-        if !part.quote.is_empty() {
-            s += &format!("> {}\n\n", part.quote);
-        }
-        if let Some(verdict) = formula_verdict(output) {
-            s += &verdict;
         }
         s += "```text\n";
         s += output.trim_end();
@@ -235,9 +225,8 @@ fn section(part: &Part, out: &Path, output: &str, ok: bool, seconds: f64) -> Str
 /// `experiment links`'s `report.md`: the paper's sentences, whether the one-packet times
 /// follow its formula, the tables and both figures.
 pub fn write_links_report(dir: &Path, tables: &str) -> Result<(), crate::LabError> {
-    let quote = PARTS[0].quote;
     let mut s = format!(
-        "# Transfer times by serial link and DMA (the paper's figures 1.5 and 1.6)\n\n> {quote}\n\n"
+        "# Transfer times by serial link and DMA (the paper's figures 1.5 and 1.6)\n\n> {LINKS_QUOTE}\n\n"
     );
     if let Some(verdict) = formula_verdict(tables) {
         s += &verdict;

@@ -30,6 +30,21 @@ use sim::{Balance, Overheads, SimConfig, Transfer, Workload};
 
 use crate::runs::render_run;
 
+/// The default scene of the scaling and cache experiments: in the repository, with texture
+/// tiles and 46k triangles.
+pub const DEFAULT_SCENE: &str =
+    "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb";
+
+/// The paper's integrator at one sample, in chunks small enough that cache sizes can matter.
+pub const PAPER_FLAGS: [&str; 6] = [
+    "--spp",
+    "1",
+    "--integrator",
+    "whitted",
+    "--chunk-triangles",
+    "256",
+];
+
 /// What both experiments render and how large they are.
 #[derive(Clone, Debug)]
 pub struct ScalingConfig {
@@ -54,16 +69,7 @@ impl ScalingConfig {
             scene,
             width: 480,
             height: 270,
-            render_args: [
-                "--spp",
-                "1",
-                "--integrator",
-                "whitted",
-                "--chunk-triangles",
-                "256",
-            ]
-            .map(String::from)
-            .to_vec(),
+            render_args: PAPER_FLAGS.map(String::from).to_vec(),
             record_subscreens: 10000,
             measured_time_scale: 1.0,
             full: false,
@@ -248,6 +254,56 @@ fn data_cost(r: &sim::SimResult) -> (f64, f64) {
     )
 }
 
+/// One simulated render without overheads, as the findings read it.
+struct Run {
+    scale: f64,
+    data: Data,
+    topology: String,
+    subscreens: u32,
+    total_s: f64,
+    /// MiB fetched and waiting share ([`data_cost`]).
+    cost: (f64, f64),
+}
+
+/// Simulated renders kept so that the findings read the curves' own runs instead of
+/// simulating them again.
+#[derive(Default)]
+struct Runs(Vec<Run>);
+
+impl Runs {
+    /// The time and data cost of a render, simulated once.
+    fn get(
+        &mut self,
+        w: &Workload,
+        topology: &str,
+        data: Data,
+        subscreens: u32,
+        scale: f64,
+    ) -> Result<(f64, (f64, f64)), crate::LabError> {
+        let hit = self.0.iter().find(|r| {
+            r.scale == scale
+                && r.data == data
+                && r.topology == topology
+                && r.subscreens == subscreens
+        });
+        if let Some(r) = hit {
+            return Ok((r.total_s, r.cost));
+        }
+        let r = simulate_full(w, topology, data, subscreens, scale, Overheads::default())?;
+        let run = Run {
+            scale,
+            data,
+            topology: topology.to_string(),
+            subscreens,
+            total_s: r.total_s,
+            cost: data_cost(&r),
+        };
+        let out = (run.total_s, run.cost);
+        self.0.push(run);
+        Ok(out)
+    }
+}
+
 /// A point of a figure.
 #[derive(Clone, Debug, Serialize)]
 pub struct Point {
@@ -425,6 +481,7 @@ pub fn subscreens(
         .filter(|&n| n <= pixels)
         .collect();
     let scales = paper_time_scales(recording.cpu_s_per_pixel);
+    let mut runs = Runs::default();
     let mut points = Vec::new();
     for &(scale, _) in &scales {
         for &c in &caches {
@@ -434,7 +491,7 @@ pub fn subscreens(
                     curve: Data::Dma(c).label(),
                     time_scale: scale,
                     x: n as f64,
-                    y: simulate(w, "magg", Data::Dma(c), n, scale, Overheads::default())?,
+                    y: runs.get(w, "magg", Data::Dma(c), n, scale)?.0,
                     predicted: None,
                 });
             }
@@ -545,22 +602,8 @@ pub fn subscreens(
             })
             .fold(0.0, f64::max);
         let n = 5000.min(pixels);
-        let (b5, w5) = data_cost(&simulate_full(
-            w,
-            "magg",
-            Data::Dma(5.0),
-            n,
-            scale,
-            Overheads::default(),
-        )?);
-        let (b100, w100) = data_cost(&simulate_full(
-            w,
-            "magg",
-            Data::Dma(100.0),
-            n,
-            scale,
-            Overheads::default(),
-        )?);
+        let (_, (b5, w5)) = runs.get(w, "magg", Data::Dma(5.0), n, scale)?;
+        let (_, (b100, w100)) = runs.get(w, "magg", Data::Dma(100.0), n, scale)?;
         findings.push(Finding {
             quote: "the rendering time is almost same when the size of shape data cache is larger than 40%",
             holds: worst < 0.05,
@@ -580,46 +623,20 @@ pub fn subscreens(
         overheads,
         notes,
     };
-    write_csv(
-        &dir.join("subscreens.csv"),
-        &report.points,
-        "subscreens",
-        "seconds",
-    )?;
-    let mut pngs = Vec::new();
-    for (i, &(scale, why)) in scales.iter().enumerate() {
-        let name = format!("subscreens-{}.png", i + 1);
-        crate::plot::log_log_png(
-            &dir.join(&name),
-            &format!("80 render nodes, simulated, time scale {scale:.2e} ({why})"),
-            "subscreens",
-            "rendering time (s)",
-            &series(&report.points, "simulated", scale),
-        )?;
-        pngs.push((name, format!("simulated, time scale {scale:.2e} ({why})")));
-    }
-    let scale = config.measured_time_scale;
-    crate::plot::log_log_marked_png(
-        &dir.join("subscreens-measured.png"),
-        &format!("80 render nodes, measured (crosses) and simulated, time scale {scale}"),
-        "subscreens",
-        "rendering time (s)",
-        &series(&report.points, "simulated", scale),
-        &series(&report.points, "measured", scale),
-    )?;
-    pngs.push((
-        "subscreens-measured.png".into(),
-        format!("measured on this machine (crosses) and simulated, time scale {scale}"),
-    ));
-    let text = report_md(
-        "Rendering time against the number of subscreens (the paper's figure 1.11)",
-        "\"The relationships between the rendering time of the image and the number of subscreens with 80 NPs are shown in Figure 1.11.\"",
+    write_figure(
+        dir,
         config,
         &report,
-        &pngs,
-        "subscreens",
-    );
-    scene_io::image_io::write_atomic(&dir.join("report.md"), text.as_bytes())?;
+        &Figure {
+            name: "subscreens",
+            what: "80 render nodes",
+            x: ("subscreens", "subscreens"),
+            y: ("seconds", "rendering time (s)"),
+            title: "Rendering time against the number of subscreens (the paper's figure 1.11)",
+            quote: "\"The relationships between the rendering time of the image and the number of subscreens with 80 NPs are shown in Figure 1.11.\"",
+            ideal: None,
+        },
+    )?;
     Ok(report)
 }
 
@@ -671,25 +688,16 @@ pub fn speedup(
     let scales = paper_time_scales(recording.cpu_s_per_pixel);
     let mut points = Vec::new();
     let mut times = Vec::new();
+    let mut runs = Runs::default();
     for &(scale, _) in &scales {
         for &data in &curves {
-            let t1 = simulate(
-                w,
-                &topology_for(1),
-                data,
-                subscreens_for(1),
-                scale,
-                Overheads::default(),
-            )?;
+            let t1 = runs
+                .get(w, &topology_for(1), data, subscreens_for(1), scale)?
+                .0;
             for &n in &nodes {
-                let t = simulate(
-                    w,
-                    &topology_for(n),
-                    data,
-                    subscreens_for(n),
-                    scale,
-                    Overheads::default(),
-                )?;
+                let t = runs
+                    .get(w, &topology_for(n), data, subscreens_for(n), scale)?
+                    .0;
                 times.push((scale, data, n, t));
                 points.push(Point {
                     kind: "simulated",
@@ -732,14 +740,10 @@ pub fn speedup(
     let overheads = overheads.unwrap_or_default();
     let scale = config.measured_time_scale;
     for &data in &measured_data {
-        let t1 = measured
+        let (t1, p1) = measured
             .iter()
             .find(|m| m.0 == data && m.1 == 1)
-            .map_or(f64::NAN, |m| (m.2, m.3).0);
-        let p1 = measured
-            .iter()
-            .find(|m| m.0 == data && m.1 == 1)
-            .map_or(f64::NAN, |m| m.3);
+            .map_or((f64::NAN, f64::NAN), |m| (m.2, m.3));
         for m in measured.iter().filter(|m| m.0 == data) {
             points.push(Point {
                 kind: "measured",
@@ -798,22 +802,8 @@ pub fn speedup(
         });
         let (s40, sb) = (sp(Data::Dma(40.0)), sp(Data::Batch));
         let n80 = subscreens_for(80);
-        let (bb, wb) = data_cost(&simulate_full(
-            w,
-            "magg",
-            Data::Batch,
-            n80,
-            scale,
-            Overheads::default(),
-        )?);
-        let (b40, w40) = data_cost(&simulate_full(
-            w,
-            "magg",
-            Data::Dma(40.0),
-            n80,
-            scale,
-            Overheads::default(),
-        )?);
+        let (_, (bb, wb)) = runs.get(w, &topology_for(80), Data::Batch, n80, scale)?;
+        let (_, (b40, w40)) = runs.get(w, &topology_for(80), Data::Dma(40.0), n80, scale)?;
         findings.push(Finding {
             quote: "In the case of the size of shape data cache is larger than 40%, the performance is almost same as that of batch transfer",
             holds: ((s40 - sb) / sb).abs() < 0.10,
@@ -848,55 +838,89 @@ pub fn speedup(
         overheads,
         notes,
     };
+    let ideal: Vec<(f64, f64)> = nodes.iter().map(|&n| (n as f64, n as f64)).collect();
+    write_figure(
+        dir,
+        config,
+        &report,
+        &Figure {
+            name: "speedup",
+            what: "T(1)/T(n)",
+            x: ("render_nodes", "render nodes"),
+            y: ("speedup", "T(1)/T(n)"),
+            title: "Parallel processing performance T(1)/T(n) (the paper's figures 1.12 to 1.15)",
+            quote: "\"This performance is defined by T(1)/T(n), here T(n) is the rendering time of a whole image with n NPs.\"",
+            ideal: Some(("ideal T(1)/n", &ideal)),
+        },
+    )?;
+    Ok(report)
+}
+
+/// What differs between the two experiments' outputs.
+struct Figure<'a> {
+    /// The files' stem: NAME.csv, NAME-1.png ...
+    name: &'static str,
+    /// The plots' titles begin with it.
+    what: &'static str,
+    /// (CSV column, axis label).
+    x: (&'static str, &'static str),
+    y: (&'static str, &'static str),
+    title: &'static str,
+    quote: &'static str,
+    /// A reference line drawn on each simulated plot.
+    ideal: Option<(&'static str, &'a [(f64, f64)])>,
+}
+
+/// The CSV, one plot of simulated curves per time scale, one of measured points over their
+/// simulated curves, and `report.md`.
+fn write_figure(
+    dir: &Path,
+    config: &ScalingConfig,
+    report: &ScalingReport,
+    f: &Figure,
+) -> Result<(), crate::LabError> {
     write_csv(
-        &dir.join("speedup.csv"),
+        &dir.join(format!("{}.csv", f.name)),
         &report.points,
-        "render_nodes",
-        "speedup",
+        f.x.0,
+        f.y.0,
     )?;
     let mut pngs = Vec::new();
-    let ideal = (
-        "ideal T(1)/n".to_string(),
-        nodes
-            .iter()
-            .map(|&n| (n as f64, n as f64))
-            .collect::<Vec<_>>(),
-    );
-    for (i, &(scale, why)) in scales.iter().enumerate() {
-        let name = format!("speedup-{}.png", i + 1);
-        let mut s = series(&report.points, "simulated", scale);
-        s.push(ideal.clone());
+    for (i, (scale, why)) in report.time_scales.iter().enumerate() {
+        let name = format!("{}-{}.png", f.name, i + 1);
+        let mut s = series(&report.points, "simulated", *scale);
+        if let Some((label, points)) = f.ideal {
+            s.push((label.to_string(), points.to_vec()));
+        }
         crate::plot::log_log_png(
             &dir.join(&name),
-            &format!("T(1)/T(n), simulated, time scale {scale:.2e} ({why})"),
-            "render nodes",
-            "T(1)/T(n)",
+            &format!("{}, simulated, time scale {scale:.2e} ({why})", f.what),
+            f.x.1,
+            f.y.1,
             &s,
         )?;
         pngs.push((name, format!("simulated, time scale {scale:.2e} ({why})")));
     }
+    let scale = config.measured_time_scale;
+    let measured = format!("{}-measured.png", f.name);
     crate::plot::log_log_marked_png(
-        &dir.join("speedup-measured.png"),
-        &format!("T(1)/T(n), measured (crosses) and simulated, time scale {scale}"),
-        "render nodes",
-        "T(1)/T(n)",
+        &dir.join(&measured),
+        &format!(
+            "{}, measured (crosses) and simulated, time scale {scale}",
+            f.what
+        ),
+        f.x.1,
+        f.y.1,
         &series(&report.points, "simulated", scale),
         &series(&report.points, "measured", scale),
     )?;
     pngs.push((
-        "speedup-measured.png".into(),
+        measured,
         format!("measured on this machine (crosses) and simulated, time scale {scale}"),
     ));
-    let text = report_md(
-        "Parallel processing performance T(1)/T(n) (the paper's figures 1.12 to 1.15)",
-        "\"This performance is defined by T(1)/T(n), here T(n) is the rendering time of a whole image with n NPs.\"",
-        config,
-        &report,
-        &pngs,
-        "render nodes",
-    );
+    let text = report_md(f.title, f.quote, config, report, &pngs, f.x.1);
     scene_io::image_io::write_atomic(&dir.join("report.md"), text.as_bytes())?;
-    Ok(report)
+    Ok(())
 }
 
 /// The findings as the command prints them.

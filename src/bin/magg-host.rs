@@ -100,10 +100,7 @@ struct ScalingArgs {
     /// Folder for the recording, measured renders, CSV, plots and report.
     #[arg(long)]
     out: Option<PathBuf>,
-    #[arg(
-        long,
-        default_value = "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
-    )]
+    #[arg(long, default_value = lab::scaling::DEFAULT_SCENE)]
     scene: PathBuf,
     #[arg(long, default_value_t = 480)]
     width: u32,
@@ -516,6 +513,26 @@ fn resume_hint(output: &std::path::Path) {
 }
 
 /// This executable: spawned nodes and the lab's whole-render runs start it again.
+/// `experiment subscreens` or `speedup`: `run` into `--out` (default `out/NAME`), its findings
+/// and measured points printed (`x` names the measured points' axis).
+fn scaling(
+    a: ScalingArgs,
+    name: &str,
+    x: &str,
+    run: fn(
+        &std::path::Path,
+        &lab::scaling::ScalingConfig,
+        &std::path::Path,
+    ) -> Result<lab::scaling::ScalingReport, lab::LabError>,
+) -> Result<()> {
+    let dir = a.out.clone().unwrap_or_else(|| lab::runs::out_dir(name));
+    let r = run(&own_program()?, &scaling_config(a), &dir)?;
+    println!("{}", lab::scaling::findings_table(&r));
+    println!("{}", lab::scaling::measured_table(&r, x));
+    println!("wrote {}/report.md", dir.display());
+    Ok(())
+}
+
 fn scaling_config(a: ScalingArgs) -> lab::scaling::ScalingConfig {
     let mut c = lab::scaling::ScalingConfig::small(a.scene);
     c.width = a.width;
@@ -1120,24 +1137,20 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             // paper's integrator and link model; every size holds its largest item.
             let render = if a.run.render.is_empty() {
                 [
-                    "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb",
-                    "--width",
-                    "160",
-                    "--height",
-                    "120",
-                    "--spp",
-                    "1",
-                    "--integrator",
-                    "whitted",
-                    "--chunk-triangles",
-                    "256",
-                    "--link-model",
-                    "paper",
-                    "--time-scale",
-                    "0.1",
+                    &[
+                        lab::scaling::DEFAULT_SCENE,
+                        "--width",
+                        "160",
+                        "--height",
+                        "120",
+                    ][..],
+                    &lab::scaling::PAPER_FLAGS,
+                    &["--link-model", "paper", "--time-scale", "0.1"],
                 ]
+                .concat()
+                .into_iter()
                 .map(String::from)
-                .to_vec()
+                .collect()
             } else {
                 a.run.render
             };
@@ -1199,27 +1212,9 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             anyhow::bail!("{}: no such scene file", a.scene.display())
         }
         ExperimentCmd::Subscreens(a) => {
-            let dir = a
-                .out
-                .clone()
-                .unwrap_or_else(|| lab::runs::out_dir("subscreens"));
-            let r = lab::scaling::subscreens(&own_program()?, &scaling_config(a), &dir)?;
-            println!("{}", lab::scaling::findings_table(&r));
-            println!("{}", lab::scaling::measured_table(&r, "subscreens"));
-            println!("wrote {}/report.md", dir.display());
-            Ok(())
+            scaling(a, "subscreens", "subscreens", lab::scaling::subscreens)
         }
-        ExperimentCmd::Speedup(a) => {
-            let dir = a
-                .out
-                .clone()
-                .unwrap_or_else(|| lab::runs::out_dir("speedup"));
-            let r = lab::scaling::speedup(&own_program()?, &scaling_config(a), &dir)?;
-            println!("{}", lab::scaling::findings_table(&r));
-            println!("{}", lab::scaling::measured_table(&r, "render nodes"));
-            println!("wrote {}/report.md", dir.display());
-            Ok(())
-        }
+        ExperimentCmd::Speedup(a) => scaling(a, "speedup", "render nodes", lab::scaling::speedup),
         ExperimentCmd::All(a) => {
             let dir = a.out.unwrap_or_else(lab::all::default_dir);
             let results = lab::all::all(&own_program()?, &dir, &a.only)?;
