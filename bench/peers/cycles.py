@@ -504,7 +504,6 @@ def slope(rows: list[dict]) -> float | None:
 
 
 def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict) -> tuple[str, dict]:
-    fmt = M.fmt
     lines = [f"# Cornell box: magg against Blender {meta['versions']['blender']} Cycles", ""]
     lines.append(f"{meta['width']}x{meta['height']} pixels, scene `{meta['scene']}`, reference "
                  f"`{meta['reference']}`; {meta['machine']}; load average before the runs "
@@ -524,65 +523,18 @@ def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict)
     lines.append("")
     lines.append("Settings: " + "; ".join(f"{k}: {val}" for k, val in meta["depth"].items()) + ".")
     lines.append("")
-    lines.append("| renderer | variant | spp | wall (s) | render (s) | CPU (s) | relMSE | wall x relMSE | render x relMSE |")
-    lines.append("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
-    for r in rows:
-        lines.append(f"| {r['renderer']} | {r['variant']} | {r['spp']} | {r['wall_s']:.2f} | "
-                     f"{r['render_s']:.2f} | {r['cpu_s']:.2f} | {fmt(r['rel_mse'])} | "
-                     f"{fmt(r['wall_s'] * r['rel_mse'])} | {fmt(r['render_s'] * r['rel_mse'])} |")
-
-    summary: dict = {}
-    for key in renderers:
-        rs = sorted((r for r in rows if (r["renderer"], r["variant"]) == key), key=lambda r: r["spp"])
-        if not rs:
-            continue
-        last = rs[-1]
-        s = {"largest_spp": last["spp"], "wall_x_relmse": last["wall_s"] * last["rel_mse"],
-             "render_x_relmse": last["render_s"] * last["rel_mse"], "slope_from_16spp": slope(rs)}
-        for target in TARGETS:
-            for kind in ("wall", "render", "cpu"):
-                est = M.time_to_reach([(r[f"{kind}_s"], r["rel_mse"]) for r in rs], target)
-                s[f"{kind}_s_to_{target:g}"] = est[0] if est else None
-                s[f"{kind}_s_to_{target:g}_note"] = est[1] if est else "too few points"
-        summary[f"{key[0]} {key[1]}"] = s
-    magg_key = next((k for k in summary if k.startswith("magg")), None)
-    cycles_keys = [k for k in summary if k.startswith("Cycles")]
-    metrics = [("wall_x_relmse", "wall x relMSE at the largest spp (s)"),
-               ("render_x_relmse", "render x relMSE at the largest spp (s)")]
-    for target in TARGETS:
-        metrics.append((f"wall_s_to_{target:g}", f"wall time to relMSE {M.target_label(target)} (s)"))
-        metrics.append((f"render_s_to_{target:g}", f"render time to relMSE {M.target_label(target)} (s)"))
-        metrics.append((f"cpu_s_to_{target:g}", f"CPU time to relMSE {M.target_label(target)} (s)"))
-    ratios: dict = {}
-    lines += ["", "Summary (lower is better; ratio < 1: magg is faster or more efficient):", ""]
-    head = ["metric"] + [f"{k} ({summary[k]['largest_spp']} spp)" for k in summary]
-    if magg_key:
-        head += [f"magg / {k}" for k in cycles_keys]
-    lines.append("| " + " | ".join(head) + " |")
-    lines.append("| --- |" + " ---: |" * (len(head) - 1))
-    extrapolated = False
-    for metric, label in metrics:
-        cells = [label]
-        for k in summary:
-            note = summary[k].get(f"{metric}_note", "")
-            extrapolated |= note == "extrapolated"
-            cells.append(fmt(summary[k][metric]) + (" *" if note == "extrapolated" else ""))
-        if magg_key:
-            for k in cycles_keys:
-                a, b = summary[magg_key][metric], summary[k][metric]
-                ratio = a / b if a is not None and b else None
-                ratios.setdefault(k, {})[metric] = ratio
-                cells.append(fmt(ratio))
-        lines.append("| " + " | ".join(cells) + " |")
+    lines += M.runs_table(rows)
+    table, footnote, summary, ratios = M.summary_table(
+        rows, renderers, "Cycles", kinds=("wall", "render", "cpu"),
+        extra=lambda rs: {"slope_from_16spp": slope(rs)})
+    lines += table
     slopes = [f"{k} {summary[k]['slope_from_16spp']:.2f}" for k in summary
               if summary[k]["slope_from_16spp"] is not None]
     if slopes:
         lines += ["", "Slope of log relMSE against log spp from 16 spp up (-1: an unbiased "
                       "estimator with independent samples; towards 0: bias): "
                       + ", ".join(slopes) + "."]
-    if extrapolated:
-        lines += ["", "\\* extrapolated from the two nearest sweep points (no two points bracket "
-                      "the target); others interpolated log(time) against log(relMSE)."]
+    lines += footnote
     return "\n".join(lines) + "\n", {"per_renderer": summary, "magg_over_cycles": ratios}
 
 

@@ -659,6 +659,79 @@ def fmt(x, digits=3) -> str:
     return f"{x:#.{digits}g}" if abs(x) < 100 else f"{x:.0f}"
 
 
+KIND_LABELS = {"wall": "wall time", "render": "render time", "cpu": "CPU time"}
+
+
+def runs_table(rows: list[dict]) -> list[str]:
+    """Every run: times, relMSE and time x relMSE (also cycles.py's)."""
+    lines = ["| renderer | variant | spp | wall (s) | render (s) | CPU (s) | relMSE | wall x relMSE | render x relMSE |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(f"| {r['renderer']} | {r['variant']} | {r['spp']} | {r['wall_s']:.2f} | "
+                     f"{r['render_s']:.2f} | {r['cpu_s']:.2f} | {fmt(r['rel_mse'])} | {fmt(r['wall_s'] * r['rel_mse'])} | "
+                     f"{fmt(r['render_s'] * r['rel_mse'])} |")
+    return lines
+
+
+def summary_table(rows: list[dict], renderers: list[tuple[str, str]], peer_prefix: str,
+                  kinds=("wall", "render"), extra=None, short=lambda k: k):
+    """One column per renderer, then magg over each peer (renderers named PEER_PREFIX...):
+    time x relMSE at the largest spp and the time of each of KINDS to each target. EXTRA(runs)
+    adds entries to a renderer's summary. Returns the table's lines, its footnote's lines, the
+    summary and the ratios (also cycles.py's)."""
+    summary: dict = {}
+    for key in renderers:
+        rs = sorted((r for r in rows if (r["renderer"], r["variant"]) == key), key=lambda r: r["spp"])
+        if not rs:
+            continue
+        last = rs[-1]
+        s = {"largest_spp": last["spp"],
+             "wall_x_relmse": last["wall_s"] * last["rel_mse"],
+             "render_x_relmse": last["render_s"] * last["rel_mse"]}
+        if extra:
+            s.update(extra(rs))
+        for target in TARGETS:
+            for kind in kinds:
+                est = time_to_reach([(r[f"{kind}_s"], r["rel_mse"]) for r in rs], target)
+                s[f"{kind}_s_to_{target:g}"] = est[0] if est else None
+                s[f"{kind}_s_to_{target:g}_note"] = est[1] if est else "too few points"
+        summary[f"{key[0]} {key[1]}"] = s
+    magg_key = next((k for k in summary if k.startswith("magg")), None)
+    peer_keys = [k for k in summary if k.startswith(peer_prefix)]
+    metrics = [("wall_x_relmse", "wall x relMSE at the largest spp (s)"),
+               ("render_x_relmse", "render x relMSE at the largest spp (s)")]
+    for target in TARGETS:
+        for kind in kinds:
+            metrics.append((f"{kind}_s_to_{target:g}",
+                            f"{KIND_LABELS[kind]} to relMSE {target_label(target)} (s)"))
+    ratios: dict = {}
+    lines = ["", "Summary (lower is better; ratio < 1: magg is faster or more efficient):", ""]
+    head = ["metric"] + [f"{k} ({summary[k]['largest_spp']} spp)" for k in summary]
+    if magg_key:
+        head += [f"magg / {short(k)}" for k in peer_keys]
+    lines.append("| " + " | ".join(head) + " |")
+    lines.append("| --- |" + " ---: |" * (len(head) - 1))
+    extrapolated = False
+    for metric, label in metrics:
+        cells = [label]
+        for k in summary:
+            note = summary[k].get(f"{metric}_note", "")
+            extrapolated |= note == "extrapolated"
+            cells.append(fmt(summary[k][metric]) + (" *" if note == "extrapolated" else ""))
+        if magg_key:
+            for k in peer_keys:
+                a, b = summary[magg_key][metric], summary[k][metric]
+                ratio = a / b if a is not None and b else None
+                ratios.setdefault(k, {})[metric] = ratio
+                cells.append(fmt(ratio))
+        lines.append("| " + " | ".join(cells) + " |")
+    footnote = []
+    if extrapolated:
+        footnote = ["", "\\* extrapolated from the two nearest sweep points (no two points bracket "
+                        "the target); others interpolated log(time) against log(relMSE)."]
+    return lines, footnote, summary, ratios
+
+
 def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict) -> tuple[str, dict]:
     lines = []
     lines.append(f"# Cornell box: magg against Mitsuba {meta['versions']['mitsuba']}")
@@ -680,64 +753,10 @@ def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict)
     lines.append("")
     lines.append("Path lengths: " + "; ".join(f"{k}: {v}" for k, v in meta["depth"].items()) + ".")
     lines.append("")
-    lines.append("| renderer | variant | spp | wall (s) | render (s) | CPU (s) | relMSE | wall x relMSE | render x relMSE |")
-    lines.append("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
-    for r in rows:
-        lines.append(f"| {r['renderer']} | {r['variant']} | {r['spp']} | {r['wall_s']:.2f} | "
-                     f"{r['render_s']:.2f} | {r['cpu_s']:.2f} | {fmt(r['rel_mse'])} | {fmt(r['wall_s'] * r['rel_mse'])} | "
-                     f"{fmt(r['render_s'] * r['rel_mse'])} |")
-
-    # Summary: one column per renderer, ratios of magg to each Mitsuba variant.
-    summary: dict = {}
-    for key in renderers:
-        rs = sorted((r for r in rows if (r["renderer"], r["variant"]) == key), key=lambda r: r["spp"])
-        if not rs:
-            continue
-        last = rs[-1]
-        s = {"largest_spp": last["spp"],
-             "wall_x_relmse": last["wall_s"] * last["rel_mse"],
-             "render_x_relmse": last["render_s"] * last["rel_mse"]}
-        for target in TARGETS:
-            for kind in ("wall", "render"):
-                est = time_to_reach([(r[f"{kind}_s"], r["rel_mse"]) for r in rs], target)
-                s[f"{kind}_s_to_{target:g}"] = est[0] if est else None
-                s[f"{kind}_s_to_{target:g}_note"] = est[1] if est else "too few points"
-        summary[f"{key[0]} {key[1]}"] = s
-    magg_key = next((k for k in summary if k.startswith("magg")), None)
-    mitsuba_keys = [k for k in summary if k.startswith("Mitsuba")]
-    metrics = [("wall_x_relmse", "wall x relMSE at the largest spp (s)"),
-               ("render_x_relmse", "render x relMSE at the largest spp (s)")]
-    for target in TARGETS:
-        metrics.append((f"wall_s_to_{target:g}", f"wall time to relMSE {target_label(target)} (s)"))
-        metrics.append((f"render_s_to_{target:g}", f"render time to relMSE {target_label(target)} (s)"))
-    ratios: dict = {}
-    lines.append("")
-    lines.append("Summary (lower is better; ratio < 1: magg is faster or more efficient):")
-    lines.append("")
-    head = ["metric"] + [f"{k} ({summary[k]['largest_spp']} spp)" for k in summary]
-    if magg_key:
-        head += [f"magg / {k.replace('Mitsuba ', '')}" for k in mitsuba_keys]
-    lines.append("| " + " | ".join(head) + " |")
-    lines.append("| --- |" + " ---: |" * (len(head) - 1))
-    extrapolated = False
-    for metric, label in metrics:
-        cells = [label]
-        for k in summary:
-            v = summary[k][metric]
-            note = summary[k].get(f"{metric}_note", "")
-            extrapolated |= note == "extrapolated"
-            cells.append(fmt(v) + (" *" if note == "extrapolated" else ""))
-        if magg_key:
-            for k in mitsuba_keys:
-                a, b = summary[magg_key][metric], summary[k][metric]
-                ratio = a / b if a is not None and b else None
-                ratios.setdefault(k, {})[metric] = ratio
-                cells.append(fmt(ratio))
-        lines.append("| " + " | ".join(cells) + " |")
-    if extrapolated:
-        lines.append("")
-        lines.append("\\* extrapolated from the two nearest sweep points (no two points bracket "
-                     "the target); others interpolated log(time) against log(relMSE).")
+    lines += runs_table(rows)
+    table, footnote, summary, ratios = summary_table(
+        rows, renderers, "Mitsuba", short=lambda k: k.replace("Mitsuba ", ""))
+    lines += table + footnote
     return "\n".join(lines) + "\n", {"per_renderer": summary, "magg_over_mitsuba": ratios}
 
 
