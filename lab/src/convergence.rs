@@ -77,6 +77,21 @@ pub fn peer_files(given: &Path) -> Vec<PathBuf> {
     files
 }
 
+/// Each curve's name and its wall time to relMSE 1e-2 and 1e-3 ([`time_to_reach`]).
+fn times_to_targets(curves: &[Curve]) -> Vec<(String, Option<f64>, Option<f64>)> {
+    curves
+        .iter()
+        .map(|c| {
+            let pts: Vec<(f64, f64)> = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
+            (
+                c.name.clone(),
+                time_to_reach(&pts, 1e-2),
+                time_to_reach(&pts, 1e-3),
+            )
+        })
+        .collect()
+}
+
 /// Seconds to reach `target` relMSE: log(time) interpolated linearly in log(relMSE) between
 /// the two consecutive points that bracket it; None when no two points do (no extrapolation:
 /// a figure read off the curve must lie on it).
@@ -158,17 +173,7 @@ pub fn error_sweep(
     for file in &peer_files {
         curves.extend(peer_curves(file)?);
     }
-    let time_to = curves
-        .iter()
-        .map(|c| {
-            let pts: Vec<(f64, f64)> = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
-            (
-                c.name.clone(),
-                time_to_reach(&pts, 1e-2),
-                time_to_reach(&pts, 1e-3),
-            )
-        })
-        .collect();
+    let time_to = times_to_targets(&curves);
     let report = ErrorReport {
         scene: config.scene.clone(),
         reference: config.reference.clone(),
@@ -386,17 +391,7 @@ mod tests {
         };
         let mut all = vec![magg];
         all.extend(curves);
-        let time_to = all
-            .iter()
-            .map(|c| {
-                let pts: Vec<(f64, f64)> = c.points.iter().map(|p| (p.wall_s, p.rel_mse)).collect();
-                (
-                    c.name.clone(),
-                    time_to_reach(&pts, 1e-2),
-                    time_to_reach(&pts, 1e-3),
-                )
-            })
-            .collect();
+        let time_to = times_to_targets(&all);
         let report = ErrorReport {
             scene: "s.gltf".into(),
             reference: "r.exr".into(),
