@@ -24,8 +24,6 @@
 //! weight at `wo`; GGX lobes use visible-normal sampling (Heitz 2018). Roughness so low that
 //! the distribution is numerically a spike is treated as a perfect mirror or refraction.
 
-use std::sync::LazyLock;
-
 use glam::Vec3;
 
 use crate::{
@@ -154,21 +152,32 @@ fn sample_visible_normal(wo: Vec3, alpha: f32, u: (f32, f32)) -> Vec3 {
 /// scaled by F0 and the part scaled by F90 - F0, tabulated over (cos theta_o, alpha).
 struct AlbedoTable {
     /// [alpha][mu] -> (E0, E1); E = F0 E0 + (F90 - F0) E1.
-    e: Vec<[f32; 2]>,
+    e: [[[f32; 2]; ALBEDO_N]; ALBEDO_N],
     /// [alpha] -> cosine-weighted hemispherical averages of (E0, E1).
-    avg: Vec<[f32; 2]>,
+    avg: [[f32; 2]; ALBEDO_N],
 }
 
 const ALBEDO_N: usize = 32;
 
-static ALBEDO: LazyLock<AlbedoTable> = LazyLock::new(|| {
+/// The table, computed once by [`compute_albedo_table`] and kept in the source as bits
+/// (`bsdf_albedo.rs`): every process used to compute it at its first shaded ray, some 40 ms
+/// of CPU each, which a cluster of 80 render nodes on one machine paid 80 times. A test
+/// recomputes it and checks every bit.
+static ALBEDO: AlbedoTable = AlbedoTable::from_bits(&albedo_bits::E, &albedo_bits::AVG);
+
+#[path = "bsdf_albedo.rs"]
+mod albedo_bits;
+
+/// Computes the albedo table (deterministic: the same bits on every machine this builds for).
+#[cfg(test)]
+fn compute_albedo_table() -> AlbedoTable {
     let n = ALBEDO_N;
     let strata = 24;
-    let mut e = vec![[0.0f32; 2]; n * n];
-    let mut avg = vec![[0.0f32; 2]; n];
+    let mut e = [[[0.0f32; 2]; ALBEDO_N]; ALBEDO_N];
+    let mut avg = [[0.0f32; 2]; ALBEDO_N];
     for ai in 0..n {
         let alpha = ai as f32 / (n - 1) as f32;
-        for mi in 0..n {
+        for (mi, cell) in e[ai].iter_mut().enumerate() {
             let mu = (mi as f32 / (n - 1) as f32).max(1e-3);
             let wo = Vec3::new(safe_sqrt(1.0 - mu * mu), 0.0, mu);
             let (mut e0, mut e1) = (0.0f64, 0.0f64);
@@ -196,31 +205,78 @@ static ALBEDO: LazyLock<AlbedoTable> = LazyLock::new(|| {
                 e0 /= count;
                 e1 /= count;
             }
-            e[ai * n + mi] = [e0 as f32, e1 as f32];
+            *cell = [e0 as f32, e1 as f32];
         }
         // 2 * integral of E(mu) mu dmu, trapezoid rule.
         let mut a = [0.0f64; 2];
         for mi in 0..n - 1 {
             let (m0, m1) = (mi as f64 / (n - 1) as f64, (mi + 1) as f64 / (n - 1) as f64);
             for k in 0..2 {
-                let f0 = e[ai * n + mi][k] as f64 * m0;
-                let f1 = e[ai * n + mi + 1][k] as f64 * m1;
+                let f0 = e[ai][mi][k] as f64 * m0;
+                let f1 = e[ai][mi + 1][k] as f64 * m1;
                 a[k] += (f0 + f1) * 0.5 * (m1 - m0) * 2.0;
             }
         }
         avg[ai] = [a[0] as f32, a[1] as f32];
     }
     AlbedoTable { e, avg }
-});
+}
 
 impl AlbedoTable {
+    const fn from_bits(
+        e: &[[[u32; 2]; ALBEDO_N]; ALBEDO_N],
+        avg: &[[u32; 2]; ALBEDO_N],
+    ) -> AlbedoTable {
+        let mut t = AlbedoTable {
+            e: [[[0.0; 2]; ALBEDO_N]; ALBEDO_N],
+            avg: [[0.0; 2]; ALBEDO_N],
+        };
+        let mut a = 0;
+        while a < ALBEDO_N {
+            let mut m = 0;
+            while m < ALBEDO_N {
+                t.e[a][m] = [f32::from_bits(e[a][m][0]), f32::from_bits(e[a][m][1])];
+                m += 1;
+            }
+            t.avg[a] = [f32::from_bits(avg[a][0]), f32::from_bits(avg[a][1])];
+            a += 1;
+        }
+        t
+    }
+
+    /// The table as the source of `bsdf_albedo.rs`.
+    #[cfg(test)]
+    fn to_source(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::from(
+            "//! The GGX albedo table of `bsdf.rs` as f32 bits, written by its test\n\
+             //! `albedo_table_in_the_source_is_the_computed_one` when run with\n\
+             //! `MAGG_WRITE_ALBEDO=1`; do not edit.\n\n",
+        );
+        let pair = |p: &[f32; 2]| format!("[{:#010x}, {:#010x}]", p[0].to_bits(), p[1].to_bits());
+        s.push_str("pub(super) const E: [[[u32; 2]; 32]; 32] = [\n");
+        for row in &self.e {
+            s.push_str("    [\n");
+            for p in row {
+                let _ = writeln!(s, "        {},", pair(p));
+            }
+            s.push_str("    ],\n");
+        }
+        s.push_str("];\n\npub(super) const AVG: [[u32; 2]; 32] = [\n");
+        for p in &self.avg {
+            let _ = writeln!(s, "    {},", pair(p));
+        }
+        s.push_str("];\n");
+        s
+    }
+
     fn lookup(&self, mu: f32, alpha: f32) -> [f32; 2] {
         let n = ALBEDO_N;
         let fa = (alpha.clamp(0.0, 1.0) * (n - 1) as f32).min((n - 1) as f32 - 1e-4);
         let fm = (mu.clamp(0.0, 1.0) * (n - 1) as f32).min((n - 1) as f32 - 1e-4);
         let (a0, m0) = (fa as usize, fm as usize);
         let (ta, tm) = (fa - a0 as f32, fm - m0 as f32);
-        let at = |a: usize, m: usize, k: usize| self.e[a * n + m][k];
+        let at = |a: usize, m: usize, k: usize| self.e[a][m][k];
         let mut out = [0.0; 2];
         for (k, o) in out.iter_mut().enumerate() {
             let lo = at(a0, m0, k) * (1.0 - tm) + at(a0, m0 + 1, k) * tm;
@@ -764,6 +820,25 @@ impl Bsdf {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn albedo_table_in_the_source_is_the_computed_one() {
+        let computed = super::compute_albedo_table();
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/src/bsdf_albedo.rs");
+        if std::env::var_os("MAGG_WRITE_ALBEDO").is_some() {
+            std::fs::write(path, computed.to_source()).unwrap();
+        }
+        let bits = |t: &super::AlbedoTable| {
+            (
+                t.e.map(|r| r.map(|p| p.map(f32::to_bits))),
+                t.avg.map(|p| p.map(f32::to_bits)),
+            )
+        };
+        assert!(
+            bits(&computed) == bits(&super::ALBEDO),
+            "{path} is stale: rerun this test with MAGG_WRITE_ALBEDO=1"
+        );
+    }
+
     use super::*;
 
     fn params(
