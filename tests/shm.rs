@@ -1,7 +1,8 @@
 //! The card's shared memory for real: on one machine a render node's DMA reads go through
 //! the fork node's shared-memory segment, with TCP forced they cross sockets, and either way
 //! (also with the delay model on) the image is the same bytes as one process; the stats say
-//! which transport carried how much, and no segment outlives its fork node.
+//! which transport carried how much, chunks are walked in place in the mapping (so a render
+//! node's own memory stays within its budget), and no segment outlives its fork node.
 
 mod common;
 use common::*;
@@ -87,6 +88,15 @@ fn shared_memory_and_forced_tcp_give_the_bytes_of_one_process() {
     assert_eq!(u(&t["bytes_fetched_shared"]), u(&t["bytes_fetched_dma"]));
     for n in &renderers {
         assert!(u(&n["shared_segments"]) >= 1, "{n}");
+        // Chunks are walked where they lie in the mapping, so the node's own memory holds
+        // little beyond the tiles it copied, well within its budget.
+        if u(&n["cache_misses"]) > 0 {
+            assert!(u(&n["chunks_in_place"]) > 0, "{n}");
+        }
+        assert!(
+            u(&n["peak_private_bytes"]) <= u(&auto["cache_bytes"]) + (8 << 20),
+            "{n}"
+        );
     }
     no_segment_left(&auto);
 
@@ -101,6 +111,9 @@ fn shared_memory_and_forced_tcp_give_the_bytes_of_one_process() {
     let t = &tcp["totals"];
     assert_eq!(u(&t["bytes_fetched_shared"]), 0);
     assert!(u(&t["bytes_fetched_dma"]) > 0);
+    for n in tcp["nodes"].as_array().unwrap() {
+        assert_eq!(u(&n["chunks_in_place"]), 0, "{n}");
+    }
     no_segment_left(&tcp);
 
     // With the paper's delays the fork node still times each shared-memory read.

@@ -26,13 +26,23 @@ pub use node::{Delivery, Fabric, RequestError, Route, SendError, Via};
 pub use topology::Topology;
 
 /// Peak resident memory of this process (Linux `VmHWM`), in bytes; 0 where it cannot be read.
-/// Every role reports it in its stats.
+/// Every role reports it in its stats. It counts pages of shared mappings too.
 pub fn peak_rss_bytes() -> u64 {
+    status_bytes("VmHWM:")
+}
+
+/// Resident memory of this process's own (Linux `RssAnon`: not files, not shared-memory
+/// segments it maps), in bytes now; 0 where it cannot be read.
+pub fn private_rss_bytes() -> u64 {
+    status_bytes("RssAnon:")
+}
+
+fn status_bytes(key: &str) -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
             s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
+                .find(|l| l.starts_with(key))
                 .and_then(|l| l.split_whitespace().nth(1))
                 .and_then(|kb| kb.parse::<u64>().ok())
         })

@@ -8,10 +8,16 @@
 //! foreign file) stays on TCP. Either way the render node validates what it reads exactly as
 //! it validates bytes from a socket: the segment is trusted no more than the network.
 //!
+//! Besides an item's words as they travel, a segment can hold a chunk's walking form (the
+//! tree as rays walk it, which each render node would otherwise compute for itself from the
+//! words, in memory of its own): render nodes then walk the chunk in place in the mapping,
+//! with nothing copied or transcoded, and check it before use as they check everything else.
+//!
 //! Layout, in native-endian `u32` words: a header of [`HEADER_WORDS`] (magic, version, the
 //! nonce's four words, the item count, zero), then one entry of [`ENTRY_WORDS`] per item
 //! (kind, index, offset and length in words as two words each, low first), then the items'
-//! words. Files are named `magg-card-PID-CARD-NONCE`, so a fork node that starts can remove
+//! words, each starting on a multiple of [`ITEM_ALIGN_WORDS`] (64 bytes, a cache line, so
+//! that what is read in place is aligned as the reader's types need). Files are named `magg-card-PID-CARD-NONCE`, so a fork node that starts can remove
 //! the segments of fork nodes that died without removing their own (see [`remove_stale`]).
 
 use std::{
@@ -28,12 +34,34 @@ use protocol::{DataId, NodeId};
 pub const SHM_DIR: &str = "/dev/shm";
 
 const MAGIC: u32 = u32::from_le_bytes(*b"MGSM");
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 pub const HEADER_WORDS: usize = 8;
 pub const ENTRY_WORDS: usize = 6;
+pub const ITEM_ALIGN_WORDS: usize = 16;
 const PREFIX: &str = "magg-card-";
 const KIND_CHUNK: u32 = 0;
 const KIND_TILE: u32 = 1;
+const KIND_CHUNK_WALK: u32 = 2;
+
+/// Which form of an item a segment entry holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Part {
+    /// The words as they travel over a socket.
+    Words,
+    /// A chunk's walking form (only chunks have one).
+    Walk,
+}
+
+/// One entry to publish.
+pub struct Item<'a> {
+    pub id: DataId,
+    pub part: Part,
+    pub words: &'a [u32],
+}
+
+fn align_up(words: u64) -> u64 {
+    words.next_multiple_of(ITEM_ALIGN_WORDS as u64)
+}
 
 /// Why a segment cannot be published or used; a render node that gets one stays on TCP.
 #[derive(Debug, thiserror::Error)]
@@ -78,11 +106,7 @@ pub struct Published {
 
 impl Published {
     /// Writes `items` as card `card`'s segment in `dir`, read-only for everyone.
-    pub fn create(
-        dir: &Path,
-        card: NodeId,
-        items: &[(DataId, &[u32])],
-    ) -> Result<Published, ShmError> {
+    pub fn create(dir: &Path, card: NodeId, items: &[Item]) -> Result<Published, ShmError> {
         let mut nonce_bytes = [0u8; 16];
         getrandom::fill(&mut nonce_bytes).expect("the operating system's random source");
         let nonce: [u32; 4] = bytemuck::cast(nonce_bytes);
@@ -97,19 +121,27 @@ impl Published {
             path: path.clone(),
             source,
         };
+        let items: Vec<(u32, u32, &Item)> = items
+            .iter()
+            .filter_map(|item| match (item.id, item.part) {
+                (DataId::Chunk(c), Part::Words) => Some((KIND_CHUNK, c, item)),
+                (DataId::Chunk(c), Part::Walk) => Some((KIND_CHUNK_WALK, c, item)),
+                (DataId::Tile(t), Part::Words) => Some((KIND_TILE, t, item)),
+                _ => None,
+            })
+            .collect();
         let table_end = HEADER_WORDS + ENTRY_WORDS * items.len();
         let mut head: Vec<u32> = Vec::with_capacity(table_end);
         head.extend([MAGIC, VERSION]);
         head.extend(nonce);
         head.extend([items.len() as u32, 0]);
+        // Where each item starts, aligned; the gaps are written as zeros.
+        let mut starts = Vec::with_capacity(items.len());
         let mut offset = table_end as u64;
-        for (id, words) in items {
-            let (kind, index) = match *id {
-                DataId::Chunk(c) => (KIND_CHUNK, c),
-                DataId::Tile(t) => (KIND_TILE, t),
-                DataId::Synthetic { .. } => continue,
-            };
-            let len = words.len() as u64;
+        for &(kind, index, item) in &items {
+            offset = align_up(offset);
+            starts.push(offset);
+            let len = item.words.len() as u64;
             head.extend([kind, index, offset as u32, (offset >> 32) as u32]);
             head.extend([len as u32, (len >> 32) as u32]);
             offset += len;
@@ -129,8 +161,14 @@ impl Published {
         };
         let mut w = BufWriter::with_capacity(1 << 20, file);
         w.write_all(bytemuck::cast_slice(&head)).map_err(create)?;
-        for (_, words) in items {
-            w.write_all(bytemuck::cast_slice(words)).map_err(create)?;
+        let mut at = head.len() as u64;
+        let zeros = [0u32; ITEM_ALIGN_WORDS];
+        for (&(_, _, item), &start) in items.iter().zip(&starts) {
+            w.write_all(bytemuck::cast_slice(&zeros[..(start - at) as usize]))
+                .map_err(create)?;
+            w.write_all(bytemuck::cast_slice(item.words))
+                .map_err(create)?;
+            at = start + item.words.len() as u64;
         }
         let file = w.into_inner().map_err(|e| create(e.into_error()))?;
         file.set_permissions(std::fs::Permissions::from_mode(0o444))
@@ -188,8 +226,11 @@ fn valid_name(name: &str) -> bool {
 pub struct Segment {
     map: memmap2::Mmap,
     /// Where each item's words are: offset and length in words, all within the mapping.
-    index: HashMap<DataId, (usize, usize)>,
+    index: Index,
 }
+
+/// Where each part of each item lies: offset and length in words.
+type Index = HashMap<(DataId, Part), (usize, usize)>;
 
 impl Segment {
     /// Maps segment `name` in `dir` if it is the one announced: `bytes` long, with `nonce`
@@ -217,10 +258,10 @@ impl Segment {
                 announced: bytes,
             });
         }
-        // SAFETY: the mapping is read-only and private to this process's view of a file
-        // the fork node wrote completely before announcing it and never writes again (it is
-        // read-only for everyone). Bytes are copied out of it before use and then validated
-        // as bytes from a socket are, so what they hold cannot break this process; a file
+        // SAFETY: the mapping is read-only, of a file the fork node wrote completely before
+        // announcing it and never writes again (it is read-only for everyone). What is read
+        // in place is validated as bytes from a socket are, and the walk reads everything
+        // with bounds checks, so what the words hold cannot break this process; a file
         // truncated by someone else after this size check would fault on access, which no
         // magg process does.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|source| ShmError::Open {
@@ -240,14 +281,24 @@ impl Segment {
 
     /// A copy of item `id`'s words, if the segment holds it. The caller validates them.
     pub fn read(&self, id: DataId) -> Option<Box<[u32]>> {
-        let &(offset, len) = self.index.get(&id)?;
-        let words: &[u32] = bytemuck::cast_slice(&self.map[..]);
-        Some(words[offset..offset + len].into())
+        let (start, end) = self.place(id, Part::Words)?;
+        Some(self.words()[start..end].into())
     }
 
-    /// Whether the segment holds item `id`.
+    /// Where the segment holds `part` of item `id`: words `start..end` of [`Segment::words`].
+    pub fn place(&self, id: DataId, part: Part) -> Option<(usize, usize)> {
+        let &(offset, len) = self.index.get(&(id, part))?;
+        Some((offset, offset + len))
+    }
+
+    /// The whole mapping as words (a mapping starts on a page, so it is aligned).
+    pub fn words(&self) -> &[u32] {
+        bytemuck::cast_slice(&self.map[..])
+    }
+
+    /// Whether the segment holds item `id`'s words.
     pub fn holds(&self, id: DataId) -> bool {
-        self.index.contains_key(&id)
+        self.index.contains_key(&(id, Part::Words))
     }
 
     pub fn len(&self) -> usize {
@@ -266,7 +317,7 @@ enum TableError {
 }
 
 /// The item table of a mapped segment, every entry checked against the mapping's size.
-fn read_table(map: &[u8], nonce: [u32; 4]) -> Result<HashMap<DataId, (usize, usize)>, TableError> {
+fn read_table(map: &[u8], nonce: [u32; 4]) -> Result<Index, TableError> {
     // A mapping starts on a page boundary, so its bytes are always aligned for words.
     let words: &[u32] = bytemuck::try_cast_slice(map)
         .map_err(|e| TableError::Layout(format!("not whole aligned words: {e}")))?;
@@ -285,8 +336,9 @@ fn read_table(map: &[u8], nonce: [u32; 4]) -> Result<HashMap<DataId, (usize, usi
     let mut index = HashMap::with_capacity(count);
     for e in words[HEADER_WORDS..table_end].chunks_exact(ENTRY_WORDS) {
         let id = match e[0] {
-            KIND_CHUNK => DataId::Chunk(e[1]),
-            KIND_TILE => DataId::Tile(e[1]),
+            KIND_CHUNK => (DataId::Chunk(e[1]), Part::Words),
+            KIND_TILE => (DataId::Tile(e[1]), Part::Words),
+            KIND_CHUNK_WALK => (DataId::Chunk(e[1]), Part::Walk),
             k => return Err(TableError::Layout(format!("unknown item kind {k}"))),
         };
         let offset = e[2] as u64 | (e[3] as u64) << 32;
@@ -333,10 +385,24 @@ mod tests {
         }
     }
 
+    fn item(id: DataId, part: Part, words: &[u32]) -> Item<'_> {
+        Item { id, part, words }
+    }
+
     fn publish(d: &Path) -> Published {
         let a = [1u32, 2, 3];
         let b = [7u32; 5];
-        Published::create(d, 3, &[(DataId::Chunk(4), &a), (DataId::Tile(9), &b)]).unwrap()
+        let walk = [8u32; 32];
+        Published::create(
+            d,
+            3,
+            &[
+                item(DataId::Chunk(4), Part::Words, &a),
+                item(DataId::Chunk(4), Part::Walk, &walk),
+                item(DataId::Tile(9), Part::Words, &b),
+            ],
+        )
+        .unwrap()
     }
 
     #[test]
@@ -344,10 +410,21 @@ mod tests {
         let d = dir();
         let p = publish(&d.0);
         let s = Segment::open(&d.0, &p.name, p.nonce, p.bytes).unwrap();
-        assert_eq!(s.len(), 2);
+        assert_eq!(s.len(), 3);
         assert_eq!(&*s.read(DataId::Chunk(4)).unwrap(), &[1, 2, 3]);
         assert_eq!(&*s.read(DataId::Tile(9)).unwrap(), &[7; 5]);
         assert!(s.read(DataId::Chunk(9)).is_none());
+        let (start, end) = s.place(DataId::Chunk(4), Part::Walk).unwrap();
+        assert_eq!(&s.words()[start..end], &[8; 32]);
+        assert!(s.place(DataId::Tile(9), Part::Walk).is_none());
+        for part in [Part::Words, Part::Walk] {
+            let (start, _) = s.place(DataId::Chunk(4), part).unwrap();
+            assert_eq!(
+                start % ITEM_ALIGN_WORDS,
+                0,
+                "{part:?} starts on a cache line"
+            );
+        }
         let mode = std::fs::metadata(p.path()).unwrap().permissions().mode();
         assert_eq!(mode & 0o222, 0, "read-only for everyone");
     }

@@ -203,6 +203,7 @@ impl ForkNode {
             frames_around_mesh: c.frames_around_mesh,
             bytes_forwarded: c.bytes_forwarded,
             peak_rss_bytes: fabric::peak_rss_bytes(),
+            peak_private_bytes: fabric::private_rss_bytes(),
             ..NodeStats::default()
         }
     }

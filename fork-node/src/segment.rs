@@ -4,14 +4,20 @@
 //! announcement on). Render nodes on this machine then read the card's items from the
 //! mapping; the rest keep asking over TCP. The segment is removed when the fork node ends
 //! (`run`), or by the next fork node to start on this machine if this one was killed.
+//!
+//! Each chunk goes in twice: its words, and its walking form, transcoded here once for the
+//! card instead of once in every render node that reads it. Render nodes walk the chunk in
+//! place, so the scene is in this machine's memory once per card rather than once per
+//! render node, and a render node's own memory holds only what came over TCP.
 
 use std::{
     path::Path,
     sync::{Arc, Mutex},
 };
 
-use fabric::shm::{self, Published};
+use fabric::shm::{self, Item, Part, Published};
 use protocol::{DataId, Message, NodeId};
+use renderer::chunk::Chunk;
 
 use crate::ForkNode;
 
@@ -51,7 +57,31 @@ impl ForkNode {
             });
             items
         };
-        let refs: Vec<(DataId, &[u32])> = items.iter().map(|(id, w)| (*id, &w[..])).collect();
+        let walks: Vec<(DataId, Vec<u32>)> = items
+            .iter()
+            .filter(|(id, _)| matches!(id, DataId::Chunk(_)))
+            .filter_map(|(id, w)| match Chunk::from_words(w[..].into()) {
+                Ok(chunk) => Some((*id, chunk.accel().to_words())),
+                Err(e) => {
+                    // Render nodes refuse it as well, whichever way it reaches them.
+                    tracing::warn!("fork node {}: {id:?} is not a valid chunk: {e}", f.me());
+                    None
+                }
+            })
+            .collect();
+        let refs: Vec<Item> = items
+            .iter()
+            .map(|(id, w)| Item {
+                id: *id,
+                part: Part::Words,
+                words: &w[..],
+            })
+            .chain(walks.iter().map(|(id, w)| Item {
+                id: *id,
+                part: Part::Walk,
+                words: w,
+            }))
+            .collect();
         let published = match Published::create(dir, f.me(), &refs) {
             Ok(p) => p,
             Err(e) => {

@@ -350,6 +350,11 @@ pub struct NodeStats {
     pub waiting_s: f64,
     pub idle_s: f64,
     pub peak_rss_bytes: u64,
+    /// Most memory of the process's own (not mapped shared segments) seen resident: render
+    /// nodes look after every subscreen and at the end, other roles at the end.
+    pub peak_private_bytes: u64,
+    /// Render nodes: chunks walked in place in a card's shared memory (never copied).
+    pub chunks_in_place: u64,
     /// Render nodes: what each subscreen they rendered cost, in the order they finished.
     pub records: Vec<SubscreenWork>,
 }

@@ -11,9 +11,13 @@
 //!
 //! A miss blocks the rendering thread while the request travels to the fork node and the
 //! data comes back (by DMA or through the mesh); the bytes received are validated once (and
-//! the chunk transcoded for the walk) and then used in place. A DMA read of a card whose
-//! shared-memory segment this node mapped ([`crate::shared`]) copies the bytes from the
-//! mapping instead, and validates them the same way.
+//! the chunk transcoded for the walk) and then used in place. A DMA read of a chunk from a
+//! card whose shared-memory segment this node mapped ([`crate::shared`]) copies nothing: the
+//! chunk's words and its walking form (which the fork node transcoded once for the card)
+//! are validated where they lie in the mapping and walked there. The budget and the
+//! least-recently-used order count such a chunk exactly as a copied one, so what is fetched
+//! and evicted does not depend on the transport; only the copy and the node's memory go.
+//! Tiles are copied out of the mapping.
 
 use std::{
     cell::Cell,
@@ -24,9 +28,45 @@ use std::{
     time::{Duration, Instant},
 };
 
-use fabric::{Fabric, Route};
+use fabric::{Fabric, Route, shm::Part};
 use protocol::{DataId, Message, NodeId, Transfer};
-use renderer::{DataError, SceneData, chunk::Chunk, scene::ChunkRules, texture::Tile};
+use renderer::{
+    DataError, SceneData,
+    accel::WalkPlace,
+    chunk::Chunk,
+    region::{Block, Region},
+    scene::ChunkRules,
+    texture::Tile,
+};
+
+use crate::shared::Mapped;
+
+/// What a miss brings: words of this node's own, or a chunk's place in a card's mapping.
+enum Fetched {
+    Words(Box<[u32]>),
+    InPlace {
+        segment: Arc<Mapped>,
+        words: (usize, usize),
+        walk: Option<(usize, usize)>,
+    },
+}
+
+impl Fetched {
+    fn word_count(&self) -> usize {
+        match self {
+            Fetched::Words(w) => w.len(),
+            Fetched::InPlace { words, .. } => words.1 - words.0,
+        }
+    }
+
+    /// The words, copied if they lie in a mapping (tiles are used as their own copy).
+    fn into_words(self) -> Box<[u32]> {
+        match self {
+            Fetched::Words(w) => w,
+            Fetched::InPlace { segment, words, .. } => segment.words()[words.0..words.1].into(),
+        }
+    }
+}
 
 /// One slot per chunk and per tile id (ids are dense), so a hit is a load, never a search.
 /// Eviction, on the rare miss, scans for the oldest stamp: least-recently-used order to the
@@ -92,9 +132,11 @@ pub struct CacheStats {
     pub peak_bytes: AtomicU64,
     /// Bytes read by DMA, whichever way they really travelled.
     pub bytes_dma: AtomicU64,
-    /// Of `bytes_dma`, those copied from a shared-memory segment rather than received.
+    /// Of `bytes_dma`, those read from a shared-memory segment rather than received.
     pub bytes_shared: AtomicU64,
     pub bytes_serial: AtomicU64,
+    /// Chunks validated and walked where they lie in a card's shared memory.
+    pub in_place: AtomicU64,
     /// Nanoseconds rendering threads spent waiting for fetches.
     pub wait_ns: AtomicU64,
 }
@@ -130,6 +172,13 @@ pub struct DemandCache {
     budget: u64,
     /// `None` in batch mode: everything is already here and nothing may be fetched.
     source: Option<Source>,
+    /// Chunks once validated in place in a card's shared memory, by id. The bytes they
+    /// point at never change (the segment is read-only, written before it was announced),
+    /// so when the least-recently-used order evicts one and a ray needs it again, the
+    /// check is not repeated: the slot gets this copy back (a few pointers; the chunk's
+    /// bytes stay in the mapping). Eviction and the bytes counted as fetched are the
+    /// paper's either way.
+    validated_in_place: Mutex<Vec<Option<Chunk>>>,
     pub stats: CacheStats,
 }
 
@@ -143,8 +192,9 @@ impl DemandCache {
         budget: u64,
         source: Option<Source>,
     ) -> DemandCache {
+        let chunks = rules.len();
         DemandCache {
-            chunks: (0..rules.len()).map(|_| Slot::default()).collect(),
+            chunks: (0..chunks).map(|_| Slot::default()).collect(),
             rules,
             tiles: (0..tiles).map(|_| Slot::default()).collect(),
             clock: AtomicU64::new(1),
@@ -153,6 +203,7 @@ impl DemandCache {
             state: Mutex::new(State::default()),
             budget,
             source,
+            validated_in_place: Mutex::new(vec![None; chunks]),
             stats: CacheStats::default(),
         }
     }
@@ -178,7 +229,7 @@ impl DemandCache {
     pub fn preload(&self, id: DataId, words: Box<[u32]>) -> Result<(), DataError> {
         match id {
             DataId::Chunk(c) => {
-                let chunk = validate_chunk(&self.rules, c, words)?;
+                let chunk = validate_chunk(&self.rules, c, Fetched::Words(words))?;
                 let bytes = chunk.byte_len() as u64;
                 self.insert(&self.chunks, c, chunk, bytes, false)?;
             }
@@ -319,7 +370,7 @@ impl DemandCache {
 
     /// Fetches a missing item from the fork node (blocking this thread), validates it and
     /// inserts it; its validated bytes.
-    fn fetch(&self, id: DataId) -> Result<Box<[u32]>, DataError> {
+    fn fetch(&self, id: DataId) -> Result<Fetched, DataError> {
         self.stats.misses.fetch_add(1, Ordering::Relaxed);
         let Some(src) = &self.source else {
             return Err(DataError::Fetch(format!(
@@ -336,14 +387,14 @@ impl DemandCache {
             "{id:?} is not in the address table"
         )))?;
         let start = Instant::now();
-        if let Some(words) = self.read_shared(src, id, owner)? {
+        if let Some(fetched) = self.read_shared(src, id, owner)? {
             self.stats
                 .wait_ns
                 .fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
-            let bytes = words.len() as u64 * 4;
+            let bytes = fetched.word_count() as u64 * 4;
             self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed);
             self.stats.bytes_shared.fetch_add(bytes, Ordering::Relaxed);
-            return self.within_budget(id, words);
+            return self.within_budget(id, fetched);
         }
         let request = Message::DataRequest {
             id,
@@ -368,12 +419,12 @@ impl DemandCache {
             Transfer::Dma => self.stats.bytes_dma.fetch_add(bytes, Ordering::Relaxed),
             Transfer::Serial => self.stats.bytes_serial.fetch_add(bytes, Ordering::Relaxed),
         };
-        self.within_budget(id, reply.data)
+        self.within_budget(id, Fetched::Words(reply.data))
     }
 
     /// Refuses an item that could never fit (the scene checks bound chunks, not senders).
-    fn within_budget(&self, id: DataId, words: Box<[u32]>) -> Result<Box<[u32]>, DataError> {
-        let bytes = words.len() as u64 * 4;
+    fn within_budget(&self, id: DataId, words: Fetched) -> Result<Fetched, DataError> {
+        let bytes = words.word_count() as u64 * 4;
         if bytes > self.budget {
             return Err(DataError::Fetch(format!(
                 "{id:?} is {bytes} bytes, more than the whole cache budget of {} bytes",
@@ -383,8 +434,8 @@ impl DemandCache {
         Ok(words)
     }
 
-    /// A copy of `id` from the shared segment of `owner`'s card, if this node mapped it and
-    /// it holds the item: the DMA read without a socket. When the links are delayed the
+    /// `id` from the shared segment of `owner`'s card, if this node mapped it and it holds
+    /// the item: the DMA read without a socket (a chunk in place, a tile copied). When the links are delayed the
     /// fork node is still asked, for the transfer's model time only (an answer without
     /// data, delivered when the DMA transfer would complete), so the model charges the same.
     fn read_shared(
@@ -392,7 +443,7 @@ impl DemandCache {
         src: &Source,
         id: DataId,
         owner: NodeId,
-    ) -> Result<Option<Box<[u32]>>, DataError> {
+    ) -> Result<Option<Fetched>, DataError> {
         let Some(segment) = src.shared.as_ref().and_then(|s| s.get(owner)) else {
             return Ok(None);
         };
@@ -411,7 +462,16 @@ impl DemandCache {
                 })
                 .map_err(|e| DataError::Fetch(e.to_string()))?;
         }
-        Ok(segment.read(id))
+        Ok(match id {
+            DataId::Chunk(_) => segment
+                .place(id, Part::Words)
+                .map(|words| Fetched::InPlace {
+                    walk: segment.place(id, Part::Walk),
+                    segment,
+                    words,
+                }),
+            _ => segment.read(id).map(Fetched::Words),
+        })
     }
 }
 
@@ -439,6 +499,33 @@ impl Drop for DemandCache {
     }
 }
 
+impl DemandCache {
+    /// Chunk `id` walked where it lies in a card's mapping: validated the first time only.
+    fn in_place(&self, id: u32, fetched: Fetched) -> Result<Chunk, DataError> {
+        self.stats.in_place.fetch_add(1, Ordering::Relaxed);
+        let known = self
+            .validated_in_place
+            .lock()
+            .expect("in-place lock")
+            .get(id as usize)
+            .cloned()
+            .flatten();
+        if let Some(chunk) = known {
+            return Ok(chunk);
+        }
+        let chunk = validate_chunk(&self.rules, id, fetched)?;
+        if let Some(entry) = self
+            .validated_in_place
+            .lock()
+            .expect("in-place lock")
+            .get_mut(id as usize)
+        {
+            *entry = Some(chunk.clone());
+        }
+        Ok(chunk)
+    }
+}
+
 /// Takes an item out of its slot: its pointer and bytes, if it held one.
 fn unlink<T>(slot: &Slot<T>) -> Option<(*mut T, u64)> {
     let p = slot.item.swap(std::ptr::null_mut(), Ordering::AcqRel);
@@ -462,9 +549,23 @@ impl Retire for Tile {
     }
 }
 
-fn validate_chunk(rules: &ChunkRules, id: u32, words: Box<[u32]>) -> Result<Chunk, DataError> {
-    let chunk =
-        Chunk::from_words(words).map_err(|e| DataError::Corrupt(format!("chunk {id}: {e}")))?;
+fn validate_chunk(rules: &ChunkRules, id: u32, fetched: Fetched) -> Result<Chunk, DataError> {
+    let corrupt = |e: &dyn std::fmt::Display| DataError::Corrupt(format!("chunk {id}: {e}"));
+    let chunk = match fetched {
+        Fetched::Words(words) => Chunk::from_words(words),
+        Fetched::InPlace {
+            segment,
+            words,
+            walk,
+        } => {
+            let block: Arc<dyn Block> = segment;
+            let region = Region::in_block(block.clone(), words.0, words.1)
+                .ok_or_else(|| corrupt(&"misplaced in its card's segment"))?;
+            let walk = walk.map(|(start, end)| WalkPlace { block, start, end });
+            Chunk::from_region(region, walk)
+        }
+    }
+    .map_err(|e| corrupt(&e))?;
     rules
         .check(id, &chunk)
         .map_err(|e| DataError::Corrupt(e.to_string()))?;
@@ -501,10 +602,10 @@ impl Reader<'_> {
     }
 
     /// Counts a miss this thread waited for (the miss path only; a hit is not slowed).
-    fn fetched(&self, words: &[u32]) {
+    fn fetched(&self, words: usize) {
         self.fetches.set(self.fetches.get() + 1);
         self.fetched_bytes
-            .set(self.fetched_bytes.get() + words.len() as u64 * 4);
+            .set(self.fetched_bytes.get() + words as u64 * 4);
     }
 
     /// Advances the recency clock: rendering threads call it once per pixel, so recency is
@@ -564,9 +665,12 @@ impl SceneData for Reader<'_> {
         if !p.is_null() {
             return Ok(self.hit(slot, p));
         }
-        let words = self.cache.fetch(DataId::Chunk(id))?;
-        self.fetched(&words);
-        let chunk = validate_chunk(&self.cache.rules, id, words)?;
+        let fetched = self.cache.fetch(DataId::Chunk(id))?;
+        self.fetched(fetched.word_count());
+        let chunk = match fetched {
+            Fetched::InPlace { .. } => self.cache.in_place(id, fetched)?,
+            Fetched::Words(_) => validate_chunk(&self.cache.rules, id, fetched)?,
+        };
         let bytes = chunk.byte_len() as u64;
         let p = self
             .cache
@@ -586,9 +690,9 @@ impl SceneData for Reader<'_> {
         if !p.is_null() {
             return Ok(self.hit(slot, p));
         }
-        let words = self.cache.fetch(DataId::Tile(id))?;
-        self.fetched(&words);
-        let tile = Tile::from_words(words)?;
+        let fetched = self.cache.fetch(DataId::Tile(id))?;
+        self.fetched(fetched.word_count());
+        let tile = Tile::from_words(fetched.into_words())?;
         let bytes = tile.as_bytes().len() as u64;
         let p = self
             .cache
@@ -635,7 +739,7 @@ mod tests {
         assert!(reader.chunk(0).is_ok());
         reader.tick();
         // A third, inserted with eviction, pushes out chunk 1 (used least recently).
-        let third = validate_chunk(&rules(3), 2, chunk(2, 4)).unwrap();
+        let third = validate_chunk(&rules(3), 2, Fetched::Words(chunk(2, 4))).unwrap();
         reader.refresh();
         cache.insert(&cache.chunks, 2, third, size, true).unwrap();
         assert!(cache.used_bytes() <= size * 2);
@@ -655,7 +759,7 @@ mod tests {
         // Another thread's miss evicts chunk 0 while this reader holds it.
         std::thread::scope(|s| {
             s.spawn(|| {
-                let c = validate_chunk(&rules(2), 1, chunk(1, 4)).unwrap();
+                let c = validate_chunk(&rules(2), 1, Fetched::Words(chunk(1, 4))).unwrap();
                 cache.insert(&cache.chunks, 1, c, size, true).unwrap();
             });
         });
@@ -664,7 +768,7 @@ mod tests {
         assert_eq!(cache.state.lock().unwrap().retired.len(), 1);
         reader.refresh();
         // The next eviction frees it: every reader has announced a later epoch.
-        let c = validate_chunk(&rules(2), 0, chunk(0, 4)).unwrap();
+        let c = validate_chunk(&rules(2), 0, Fetched::Words(chunk(0, 4))).unwrap();
         cache.insert(&cache.chunks, 0, c, size, true).unwrap();
         let state = cache.state.lock().unwrap();
         assert_eq!(state.retired.len(), 1, "only the newly evicted one waits");
@@ -674,15 +778,15 @@ mod tests {
     #[test]
     fn wrong_or_corrupt_data_is_refused() {
         let rules = ChunkRules::new(vec![(0, 2); 6], 0);
-        assert!(validate_chunk(&rules, 5, chunk(5, 2)).is_ok());
-        assert!(validate_chunk(&rules, 5, chunk(4, 2)).is_err());
+        assert!(validate_chunk(&rules, 5, Fetched::Words(chunk(5, 2))).is_ok());
+        assert!(validate_chunk(&rules, 5, Fetched::Words(chunk(4, 2))).is_err());
         // The right id, but not what the scene says chunk 5 is.
-        assert!(validate_chunk(&rules, 5, chunk(5, 3)).is_err());
+        assert!(validate_chunk(&rules, 5, Fetched::Words(chunk(5, 3))).is_err());
         let other = ChunkRules::new(vec![(1, 2); 6], 0);
-        assert!(validate_chunk(&other, 5, chunk(5, 2)).is_err());
+        assert!(validate_chunk(&other, 5, Fetched::Words(chunk(5, 2))).is_err());
         let mut w = chunk(5, 2).to_vec();
         w.truncate(w.len() - 1);
-        assert!(validate_chunk(&rules, 5, w.into_boxed_slice()).is_err());
+        assert!(validate_chunk(&rules, 5, Fetched::Words(w.into_boxed_slice())).is_err());
         let cache = DemandCache::new(rules, 1, 1 << 20, None);
         assert!(
             cache

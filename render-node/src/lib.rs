@@ -258,6 +258,8 @@ fn node_stats(
         waiting_s: wait as f64 * 1e-9,
         idle_s: g(&w.idle_ns) as f64 * 1e-9,
         peak_rss_bytes: fabric::peak_rss_bytes(),
+        peak_private_bytes: g(&w.peak_private).max(fabric::private_rss_bytes()),
+        chunks_in_place: cache.map_or(0, |c| g(&c.stats.in_place)),
         records: w.records.lock().expect("records lock").clone(),
         ..NodeStats::default()
     }

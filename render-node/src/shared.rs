@@ -13,10 +13,28 @@ use std::{
 
 use fabric::shm::{self, Segment, ShmError};
 use protocol::NodeId;
+use renderer::region::Block;
+
+/// A mapped segment, as a block the renderer can walk chunks in place in.
+pub struct Mapped(pub Segment);
+
+impl Block for Mapped {
+    fn words(&self) -> &[u32] {
+        self.0.words()
+    }
+}
+
+impl std::ops::Deref for Mapped {
+    type Target = Segment;
+
+    fn deref(&self) -> &Segment {
+        &self.0
+    }
+}
 
 #[derive(Default)]
 pub struct SharedSegments {
-    by_card: RwLock<HashMap<NodeId, Arc<Segment>>>,
+    by_card: RwLock<HashMap<NodeId, Arc<Mapped>>>,
 }
 
 impl SharedSegments {
@@ -43,12 +61,12 @@ impl SharedSegments {
         self.by_card
             .write()
             .expect("segments lock")
-            .insert(card, Arc::new(segment));
+            .insert(card, Arc::new(Mapped(segment)));
         Ok(())
     }
 
     /// The mapped segment of fork node `card`'s memory, if any.
-    pub fn get(&self, card: NodeId) -> Option<Arc<Segment>> {
+    pub fn get(&self, card: NodeId) -> Option<Arc<Mapped>> {
         self.by_card
             .read()
             .expect("segments lock")
@@ -64,7 +82,7 @@ impl SharedSegments {
 
 #[cfg(test)]
 mod tests {
-    use fabric::shm::Published;
+    use fabric::shm::{Item, Part, Published};
     use protocol::DataId;
 
     use super::*;
@@ -74,7 +92,12 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("magg-shared-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let words = [5u32; 16];
-        let p = Published::create(&dir, 2, &[(DataId::Tile(0), &words)]).unwrap();
+        let item = Item {
+            id: DataId::Tile(0),
+            part: Part::Words,
+            words: &words,
+        };
+        let p = Published::create(&dir, 2, &[item]).unwrap();
         let s = SharedSegments::default();
         let mut wrong = p.nonce;
         wrong[0] = !wrong[0];

@@ -74,6 +74,8 @@ impl Active {
 #[derive(Default)]
 pub struct WorkStats {
     pub subscreens: AtomicU32,
+    /// Most private resident memory seen after a subscreen.
+    pub peak_private: AtomicU64,
     pub rows: AtomicU64,
     pub pixels: AtomicU64,
     pub samples: AtomicU64,
@@ -163,6 +165,9 @@ impl Worker {
                 .render_ns
                 .fetch_add(t1.elapsed().as_nanos() as u64, Ordering::Relaxed);
             self.stats.subscreens.fetch_add(1, Ordering::Relaxed);
+            self.stats
+                .peak_private
+                .fetch_max(fabric::private_rss_bytes(), Ordering::Relaxed);
             finished = Some(id);
         }
         self.stats

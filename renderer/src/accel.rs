@@ -22,12 +22,13 @@
 //! Closest hits are unique: equal distances are decided by (chunk, triangle) index, so the
 //! answer does not depend on the order in which the walk meets the triangles.
 
-use std::mem::MaybeUninit;
+use std::{mem::MaybeUninit, sync::Arc};
 
 use crate::{
     bvh::{self, Child, MAX_DEPTH, Visit, WideNode},
     math::gamma,
     ray::RayQuery,
+    region::{Block, Region},
     simd::{F32x4, F32x8},
     triangle::{self, TriHit},
 };
@@ -50,7 +51,18 @@ const STACK: usize = 8 * MAX_DEPTH;
 pub struct Node8 {
     pub planes: [[f32; 8]; 6],
     pub child: [u32; 8],
+    /// Fills the node to four cache lines' size explicitly, so that it has no padding bytes
+    /// and can be written to and read from plain words (a card's shared memory).
+    pad: [u32; 8],
 }
+
+// SAFETY: `repr(C)` of `f32` and `u32` arrays only, with the tail padding made an explicit
+// field (size 256 = 6 * 32 + 32 + 32, a multiple of the alignment): every bit pattern is a
+// valid node and there are no uninitialised bytes.
+unsafe impl bytemuck::Zeroable for Node8 {}
+// SAFETY: as above.
+unsafe impl bytemuck::Pod for Node8 {}
+const _: () = assert!(size_of::<Node8>() == 256);
 
 impl Node8 {
     const EMPTY: Node8 = Node8 {
@@ -63,6 +75,7 @@ impl Node8 {
             [f32::NEG_INFINITY; 8],
         ],
         child: [0; 8],
+        pad: [0; 8],
     };
 
     fn set(&mut self, slot: usize, child: u32, b: &Bounds) {
@@ -96,6 +109,13 @@ pub struct Tri4 {
     pub id: [u32; 4],
 }
 
+// SAFETY: `repr(C)` of `f32` and `u32` arrays only, 160 bytes, a multiple of the alignment:
+// no padding, every bit pattern valid.
+unsafe impl bytemuck::Zeroable for Tri4 {}
+// SAFETY: as above.
+unsafe impl bytemuck::Pod for Tri4 {}
+const _: () = assert!(size_of::<Tri4>() == 160);
+
 #[derive(Clone, Copy, Debug)]
 struct Bounds {
     min: [f32; 3],
@@ -116,12 +136,38 @@ impl Bounds {
     }
 }
 
-/// A tree in the walking form: node 0 is the root (none when the tree is empty).
+/// A tree in the walking form: node 0 is the root (none when the tree is empty). Its arrays
+/// are its own, or lie in a shared block (a card's memory, [`Bvh8::in_block`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Bvh8 {
-    pub nodes: Vec<Node8>,
-    pub leaves: Vec<Tri4>,
+    pub nodes: Region<Node8>,
+    pub leaves: Region<Tri4>,
 }
+
+/// Why a walking form found in a block cannot be walked.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum WalkFormError {
+    #[error("the walking form does not fit its block or is misaligned")]
+    Layout,
+    #[error("walking form: {0}")]
+    NotATree(String),
+}
+
+/// Where a chunk's walking form lies, as [`Bvh8::to_words`] wrote it: words `start..end`
+/// of `block`.
+#[derive(Clone)]
+pub struct WalkPlace {
+    pub block: Arc<dyn Block>,
+    pub start: usize,
+    pub end: usize,
+}
+
+/// Words before the nodes in the block form: magic, node count, leaf count, then zeros up to
+/// a node's alignment, so that nodes that start 64-byte aligned stay so.
+const WALK_HEADER_WORDS: usize = 16;
+const WALK_MAGIC: u32 = u32::from_le_bytes(*b"MGW8");
+const NODE_WORDS: usize = size_of::<Node8>() / 4;
+const TRI4_WORDS: usize = size_of::<Tri4>() / 4;
 
 /// Transcodes a tree in its wire form. `leaf(first, count, nodes)` makes the reference and
 /// box of a leaf child (and may add nodes of its own). Nodes keep their indices. Input that
@@ -203,7 +249,10 @@ impl Bvh8 {
             leaves.push(block);
             Some((LEAF | (leaves.len() - 1) as u32, b))
         });
-        Bvh8 { nodes, leaves }
+        Bvh8 {
+            nodes: nodes.into(),
+            leaves: leaves.into(),
+        }
     }
 
     /// The top-level tree, from its validated wire nodes, the chunk of each leaf slot and
@@ -228,9 +277,116 @@ impl Bvh8 {
             Some(((nodes.len() - 1) as u32, node.bounds()))
         });
         Bvh8 {
-            nodes,
-            leaves: Vec::new(),
+            nodes: nodes.into(),
+            leaves: Region::empty(),
         }
+    }
+
+    /// This tree as words, for a block that [`Bvh8::in_block`] reads in place: a header,
+    /// the nodes, the leaves. Placed at a 64-byte aligned word, its nodes are aligned too.
+    pub fn to_words(&self) -> Vec<u32> {
+        let mut w = Vec::with_capacity(
+            WALK_HEADER_WORDS + self.nodes.len() * NODE_WORDS + self.leaves.len() * TRI4_WORDS,
+        );
+        w.extend([
+            WALK_MAGIC,
+            self.nodes.len() as u32,
+            self.leaves.len() as u32,
+        ]);
+        w.resize(WALK_HEADER_WORDS, 0);
+        w.extend_from_slice(bytemuck::cast_slice(&self.nodes));
+        w.extend_from_slice(bytemuck::cast_slice(&self.leaves));
+        w
+    }
+
+    /// The tree [`Bvh8::to_words`] wrote at words `start..end` of `block`, walked in place,
+    /// after checking that it is a tree over triangles `0..tri_count`: every child in range
+    /// and reached once from the root, every leaf in range, every triangle index below
+    /// `tri_count`. Boxes are taken as they are: wrong ones can make rays miss, as wrong
+    /// triangles can, but not read out of bounds or loop.
+    pub fn in_block(
+        block: Arc<dyn Block>,
+        start: usize,
+        end: usize,
+        tri_count: u32,
+    ) -> Result<Bvh8, WalkFormError> {
+        let head = block
+            .words()
+            .get(start..end)
+            .and_then(|w| w.get(..WALK_HEADER_WORDS))
+            .ok_or(WalkFormError::Layout)?;
+        if head[0] != WALK_MAGIC {
+            return Err(WalkFormError::Layout);
+        }
+        let (nodes, leaves) = (head[1] as usize, head[2] as usize);
+        let nodes_end = nodes
+            .checked_mul(NODE_WORDS)
+            .and_then(|n| n.checked_add(start + WALK_HEADER_WORDS))
+            .ok_or(WalkFormError::Layout)?;
+        let leaves_end = leaves
+            .checked_mul(TRI4_WORDS)
+            .and_then(|n| n.checked_add(nodes_end))
+            .filter(|&e| e == end)
+            .ok_or(WalkFormError::Layout)?;
+        let bvh = Bvh8 {
+            nodes: Region::in_block(block.clone(), start + WALK_HEADER_WORDS, nodes_end)
+                .ok_or(WalkFormError::Layout)?,
+            leaves: Region::in_block(block, nodes_end, leaves_end).ok_or(WalkFormError::Layout)?,
+        };
+        bvh.validate(tri_count)?;
+        Ok(bvh)
+    }
+
+    /// Checks what [`Bvh8::in_block`] promises. A slot whose child is node 0 (the root,
+    /// nobody's child) must be empty: boxes no ray enters.
+    fn validate(&self, tri_count: u32) -> Result<(), WalkFormError> {
+        let bad = |what: String| Err(WalkFormError::NotATree(what));
+        let too_high = self.leaves.iter().fold(0u32, |n, b| {
+            n | b.id.iter().fold(0, |n, &t| n | u32::from(t >= tri_count))
+        });
+        if too_high != 0 {
+            return bad(format!(
+                "a leaf names a triangle beyond the chunk's {tri_count}"
+            ));
+        }
+        if self.nodes.is_empty() {
+            return Ok(());
+        }
+        let mut seen = vec![false; self.nodes.len()];
+        seen[0] = true;
+        let mut work = vec![0usize];
+        while let Some(i) = work.pop() {
+            let n = &self.nodes[i];
+            for (slot, &c) in n.child.iter().enumerate() {
+                if c & LEAF != 0 {
+                    if (c & !LEAF) as usize >= self.leaves.len() {
+                        return bad(format!(
+                            "node {i} names leaf {} of {}",
+                            c & !LEAF,
+                            self.leaves.len()
+                        ));
+                    }
+                } else if c == 0 {
+                    let empty = (0..3).all(|k| {
+                        n.planes[2 * k][slot] == f32::INFINITY
+                            && n.planes[2 * k + 1][slot] == f32::NEG_INFINITY
+                    });
+                    if !empty {
+                        return bad(format!("node {i} slot {slot} leads back to the root"));
+                    }
+                } else {
+                    match seen.get_mut(c as usize) {
+                        None => {
+                            return bad(format!("node {i} names node {c} of {}", self.nodes.len()));
+                        }
+                        Some(s) if *s => return bad(format!("node {c} is reached twice")),
+                        Some(s) => *s = true,
+                    }
+                    work.push(c as usize);
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Bytes this form takes in memory.
@@ -662,7 +818,7 @@ impl Bvh8 {
         // A chunk of one leaf (up to four triangles: a wall, a quad light) was entered
         // through the top-level box of the chunk, which holds the leaf's: its own tree would
         // only test that box again. Boxes only prune, so skipping one changes no hit.
-        if let [b] = self.leaves.as_slice() {
+        if let [b] = &self.leaves[..] {
             return closest_in_leaf(q, b, chunk, best, &mut accept);
         }
         let mut found = false;
@@ -684,7 +840,7 @@ impl Bvh8 {
     #[inline(always)]
     pub fn each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
         // One leaf: straight to it, as in `closest`.
-        if let [b] = self.leaves.as_slice() {
+        if let [b] = &self.leaves[..] {
             hits_in_leaf(q, b, tmax, &mut f);
             return;
         }
@@ -791,6 +947,98 @@ mod tests {
             }
         }
         m
+    }
+
+    struct Words(Vec<u32>);
+    impl Block for Words {
+        fn words(&self) -> &[u32] {
+            &self.0
+        }
+    }
+
+    /// `words` at a 64-byte aligned place of a block, as a card's segment holds them.
+    fn aligned_block(words: &[u32]) -> (Arc<dyn Block>, usize, usize) {
+        let mut v = vec![0u32; words.len() + 16];
+        let start = (16 - (v.as_ptr() as usize / 4) % 16) % 16;
+        v[start..start + words.len()].copy_from_slice(words);
+        (Arc::new(Words(v)), start, start + words.len())
+    }
+
+    #[test]
+    fn a_walking_form_written_as_words_is_walked_in_place_and_a_broken_one_refused() {
+        let m = grid(40, 1.0);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let tris = chunk.tri_count();
+        let bvh = chunk.accel();
+        assert!(
+            bvh.nodes.len() > 1,
+            "the test needs a tree of several nodes"
+        );
+        let words = bvh.to_words();
+        let (block, start, end) = aligned_block(&words);
+        let read = Bvh8::in_block(block, start, end, tris).unwrap();
+        assert_eq!(&read, bvh);
+        assert!(read.nodes.is_shared() && read.leaves.is_shared());
+
+        let refused = |change: &dyn Fn(&mut Bvh8), tris: u32| {
+            let mut b = bvh.clone();
+            change(&mut b);
+            let (block, start, end) = aligned_block(&b.to_words());
+            Bvh8::in_block(block, start, end, tris).unwrap_err()
+        };
+        let inner = |b: &Bvh8| {
+            let n = &b.nodes[0];
+            (0..8)
+                .find(|&s| n.child[s] & LEAF == 0 && n.child[s] != 0)
+                .unwrap()
+        };
+        let set = |b: &mut Bvh8, c: u32| {
+            let s = inner(b);
+            b.nodes.make_mut()[0].child[s] = c;
+        };
+        assert!(matches!(
+            refused(&|b| set(b, 0), tris),
+            WalkFormError::NotATree(_)
+        ));
+        let past = bvh.nodes.len() as u32;
+        assert!(matches!(
+            refused(&|b| set(b, past), tris),
+            WalkFormError::NotATree(_)
+        ));
+        let twice = |b: &mut Bvh8| {
+            let n = &mut b.nodes.make_mut()[0];
+            let s = (0..8)
+                .find(|&s| n.child[s] & LEAF == 0 && n.child[s] != 0)
+                .unwrap();
+            let other = (0..8).find(|&o| o != s && n.child[o] != 0).unwrap();
+            n.child[other] = n.child[s];
+        };
+        assert!(matches!(refused(&twice, tris), WalkFormError::NotATree(_)));
+        let leaves = bvh.leaves.len() as u32;
+        assert!(matches!(
+            refused(&|b| set(b, LEAF | leaves), tris),
+            WalkFormError::NotATree(_)
+        ));
+        assert!(matches!(
+            refused(&|_| {}, tris - 1),
+            WalkFormError::NotATree(_)
+        ));
+        // Cut short, misplaced or not a walking form at all.
+        let (block, start, end) = aligned_block(&words);
+        assert_eq!(
+            Bvh8::in_block(block.clone(), start, end - 1, tris).unwrap_err(),
+            WalkFormError::Layout
+        );
+        assert_eq!(
+            Bvh8::in_block(block, start + 1, end, tris).unwrap_err(),
+            WalkFormError::Layout
+        );
+        let (block, start, end) = aligned_block(&[7; 64]);
+        assert_eq!(
+            Bvh8::in_block(block, start, end, tris).unwrap_err(),
+            WalkFormError::Layout
+        );
     }
 
     #[test]

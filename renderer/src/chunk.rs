@@ -25,9 +25,10 @@ use glam::{Vec2, Vec3, Vec3A, Vec4};
 use obvhs::aabb::Aabb;
 
 use crate::{
-    accel::{Bvh8, Closest},
+    accel::{Bvh8, Closest, WalkFormError, WalkPlace},
     bvh::{self, NodeError, Visit, WideNode},
     ray::RayQuery,
+    region::Region,
     triangle::TriHit,
 };
 
@@ -133,13 +134,28 @@ pub enum ChunkError {
     VertexOutOfRange { tri: usize, vertex: u32, count: u32 },
     #[error("chunk holds a non-finite value")]
     NonFinite,
+    #[error("chunk {0}")]
+    WalkForm(#[from] WalkFormError),
+}
+
+/// Whether every word, read as an `f32`, is finite (its exponent bits not all set). Written
+/// as a branch-free OR over blocks so that it runs at memory speed: a render node checks
+/// every chunk it reads, and reads most of a scene.
+fn all_finite(words: &[u32]) -> bool {
+    const EXPONENT: u32 = 0x7f80_0000;
+    words.chunks(256).all(|block| {
+        block
+            .iter()
+            .fold(0u32, |bad, &w| bad | u32::from(w & EXPONENT == EXPONENT))
+            == 0
+    })
 }
 
 /// One chunk: its wire layout in 4-byte aligned memory, and the walking form of its tree
 /// ([`Bvh8`]) transcoded from it once it was known to be valid.
 #[derive(Clone)]
 pub struct Chunk {
-    words: Box<[u32]>,
+    words: Region<u32>,
     layout: Layout,
     accel: Bvh8,
 }
@@ -163,6 +179,14 @@ impl Chunk {
     /// Takes ownership of words received from elsewhere and checks every offset, index and
     /// value once, so that later access can never read out of bounds or loop.
     pub fn from_words(words: Box<[u32]>) -> Result<Chunk, ChunkError> {
+        Chunk::from_region(Region::own(words), None)
+    }
+
+    /// Checks words as [`Chunk::from_words`] does, wherever they lie (a card's memory mapped
+    /// into this process, for one). The walking form is read in place from `walk` if given
+    /// (checked by [`Bvh8::in_block`] against this chunk's triangles), else transcoded from
+    /// the words.
+    pub fn from_region(words: Region<u32>, walk: Option<WalkPlace>) -> Result<Chunk, ChunkError> {
         if words.len() < HEADER_WORDS {
             return Err(ChunkError::TooShort(words.len() * 4));
         }
@@ -192,14 +216,10 @@ impl Chunk {
             layout,
             accel: Bvh8::default(),
         };
-        let floats: &[f32] = bytemuck::cast_slice(&chunk.words[layout.positions..layout.vertices]);
-        let attr: &[f32] = bytemuck::cast_slice(&chunk.words[layout.normals..layout.end]);
-        let bounds = header.bounds_min.iter().chain(header.bounds_max.iter());
-        if !floats
-            .iter()
-            .chain(attr)
-            .chain(bounds)
-            .all(|v| v.is_finite())
+        let bounds: [f32; 6] = bytemuck::cast([header.bounds_min, header.bounds_max]);
+        if !all_finite(&chunk.words[layout.positions..layout.vertices])
+            || !all_finite(&chunk.words[layout.normals..layout.end])
+            || !all_finite(bytemuck::cast_slice(&bounds))
         {
             return Err(ChunkError::NonFinite);
         }
@@ -214,14 +234,28 @@ impl Chunk {
                 }
             }
         }
-        bvh::validate_tree(chunk.nodes(), header.tri_count as usize)?;
-        Ok(chunk.transcoded())
+        match walk {
+            Some(w) => {
+                let accel = Bvh8::in_block(w.block, w.start, w.end, header.tri_count)?;
+                Ok(Chunk { accel, ..chunk })
+            }
+            None => {
+                bvh::validate_tree(chunk.nodes(), header.tri_count as usize)?;
+                Ok(chunk.transcoded())
+            }
+        }
     }
 
     /// Builds the walking form; only ever called on valid words.
     fn transcoded(mut self) -> Chunk {
         self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
         self
+    }
+
+    /// Whether the words and walking form lie in a shared block rather than in this
+    /// process's own memory.
+    pub fn is_shared(&self) -> bool {
+        self.words.is_shared()
     }
 
     /// The tree in the form rays walk.
@@ -665,7 +699,7 @@ pub fn build_chunk_from(
     let layout = Layout::of(&header)?;
     debug_assert_eq!(layout.end, words.len());
     let chunk = Chunk {
-        words: words.into_boxed_slice(),
+        words: words.into(),
         layout,
         accel: Bvh8::default(),
     };
@@ -675,8 +709,9 @@ pub fn build_chunk_from(
 impl Chunk {
     /// Sets the light index of the first triangle (done once the scene's light list exists).
     pub fn set_light_base(&mut self, base: u32) {
-        let header: &mut ChunkHeader =
-            bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(&mut self.words[..HEADER_WORDS]));
+        let header: &mut ChunkHeader = bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(
+            &mut self.words.make_mut()[..HEADER_WORDS],
+        ));
         header.light_base = base;
     }
 

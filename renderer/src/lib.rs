@@ -16,6 +16,7 @@ pub mod light;
 pub mod material;
 pub mod math;
 pub mod ray;
+pub mod region;
 pub mod render;
 pub mod sampler;
 pub mod scene;

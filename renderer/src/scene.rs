@@ -17,6 +17,7 @@ use crate::{
     chunk::{self, Chunk, MeshData},
     light::{Environment, Light, LightDistribution},
     material::Material,
+    region::Region,
     source::MemoryData,
     texture::{self, Filter, TextureInfo, Wrap},
 };
@@ -249,8 +250,8 @@ impl Tlas {
     #[inline(always)]
     pub fn accel(&self) -> &Bvh8 {
         static NONE: Bvh8 = Bvh8 {
-            nodes: Vec::new(),
-            leaves: Vec::new(),
+            nodes: Region::empty(),
+            leaves: Region::empty(),
         };
         self.accel.0.get().unwrap_or(&NONE)
     }

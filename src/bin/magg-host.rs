@@ -1085,6 +1085,23 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         s.totals.frames_forwarded,
         mib(s.cluster_peak_rss_bytes)
     );
+    let median = |mut v: Vec<u64>| -> u64 {
+        v.sort_unstable();
+        v.get(v.len() / 2).copied().unwrap_or(0)
+    };
+    let private: Vec<u64> = render.iter().map(|n| n.peak_private_bytes).collect();
+    eprintln!(
+        "render nodes' own memory (not shared segments) median {:.1} / max {:.1} MiB for a cache budget of {:.1} MiB; fork nodes' max {:.1} MiB; {} chunks walked in place in shared memory",
+        mib(median(private.clone())),
+        mib(private.iter().copied().max().unwrap_or(0)),
+        mib(s.cache_bytes),
+        mib(forks
+            .iter()
+            .map(|n| n.peak_private_bytes)
+            .max()
+            .unwrap_or(0)),
+        render.iter().map(|n| n.chunks_in_place).sum::<u64>()
+    );
     for l in &s.lost_nodes {
         eprintln!(
             "lost {} after {:.1} s: {}; {} subscreens handed on",
