@@ -225,7 +225,7 @@ impl ForkNode {
             count += 1;
         }
         for (i, t) in owned(&data.tiles, &placement.tile_owner, me) {
-            self.store(DataId::Tile(i as u32), t.texels.as_ref().into());
+            self.store(DataId::Tile(i as u32), t.texels[..].into());
             count += 1;
         }
         self.memory.lock().expect("memory lock").expected = Some(count);
@@ -244,7 +244,7 @@ impl ForkNode {
             count += 1;
         }
         for (i, t) in owned(&data.tiles, &placement.tile_owner, fork) {
-            hold(DataId::Tile(i as u32), t.texels.clone());
+            hold(DataId::Tile(i as u32), t.texels[..].into());
             count += 1;
         }
         let _ = f.send_direct(fork, &Message::HoldDone { count }, Box::new([]), 0, 0);

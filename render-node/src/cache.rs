@@ -14,10 +14,10 @@
 //! the chunk transcoded for the walk) and then used in place. A DMA read of a chunk from a
 //! card whose shared-memory segment this node mapped ([`crate::shared`]) copies nothing: the
 //! chunk's words and its walking form (which the fork node transcoded once for the card)
-//! are validated where they lie in the mapping and walked there. The budget and the
-//! least-recently-used order count such a chunk exactly as a copied one, so what is fetched
-//! and evicted does not depend on the transport; only the copy and the node's memory go.
-//! Tiles are copied out of the mapping.
+//! are validated where they lie in the mapping and walked there, and a tile's texels are
+//! read there. The budget and the least-recently-used order count such items exactly as
+//! copied ones, so what is fetched and evicted does not depend on the transport; only the
+//! copy and the node's memory go.
 
 use std::{
     cell::Cell,
@@ -41,7 +41,7 @@ use renderer::{
 
 use crate::shared::Mapped;
 
-/// What a miss brings: words of this node's own, or a chunk's place in a card's mapping.
+/// What a miss brings: words of this node's own, or an item's place in a card's mapping.
 enum Fetched {
     Words(Box<[u32]>),
     InPlace {
@@ -59,11 +59,16 @@ impl Fetched {
         }
     }
 
-    /// The words, copied if they lie in a mapping (tiles are used as their own copy).
-    fn into_words(self) -> Box<[u32]> {
+    /// The words, wherever they lie.
+    fn into_region(self) -> Result<Region<u32>, DataError> {
         match self {
-            Fetched::Words(w) => w,
-            Fetched::InPlace { segment, words, .. } => segment.words()[words.0..words.1].into(),
+            Fetched::Words(w) => Ok(Region::own(w)),
+            Fetched::InPlace { segment, words, .. } => {
+                let block: Arc<dyn Block> = segment;
+                Region::in_block(block, words.0, words.1).ok_or_else(|| {
+                    DataError::Corrupt("an item misplaced in its card's segment".into())
+                })
+            }
         }
     }
 }
@@ -435,7 +440,7 @@ impl DemandCache {
     }
 
     /// `id` from the shared segment of `owner`'s card, if this node mapped it and it holds
-    /// the item: the DMA read without a socket (a chunk in place, a tile copied). When the links are delayed the
+    /// the item: the DMA read without a socket, nothing copied. When the links are delayed the
     /// fork node is still asked, for the transfer's model time only (an answer without
     /// data, delivered when the DMA transfer would complete), so the model charges the same.
     fn read_shared(
@@ -462,16 +467,13 @@ impl DemandCache {
                 })
                 .map_err(|e| DataError::Fetch(e.to_string()))?;
         }
-        Ok(match id {
-            DataId::Chunk(_) => segment
-                .place(id, Part::Words)
-                .map(|words| Fetched::InPlace {
-                    walk: segment.place(id, Part::Walk),
-                    segment,
-                    words,
-                }),
-            _ => segment.read(id).map(Fetched::Words),
-        })
+        Ok(segment
+            .place(id, Part::Words)
+            .map(|words| Fetched::InPlace {
+                walk: segment.place(id, Part::Walk),
+                segment,
+                words,
+            }))
     }
 }
 
@@ -692,7 +694,7 @@ impl SceneData for Reader<'_> {
         }
         let fetched = self.cache.fetch(DataId::Tile(id))?;
         self.fetched(fetched.word_count());
-        let tile = Tile::from_words(fetched.into_words())?;
+        let tile = Tile::from_region(fetched.into_region()?)?;
         let bytes = tile.as_bytes().len() as u64;
         let p = self
             .cache

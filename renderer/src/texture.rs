@@ -10,7 +10,10 @@ use std::sync::LazyLock;
 use glam::{Vec2, Vec4};
 use serde::{Deserialize, Serialize};
 
-use crate::source::{DataError, SceneData};
+use crate::{
+    region::Region,
+    source::{DataError, SceneData},
+};
 
 /// Texels along the side of a tile: 64 x 64 x 4 bytes = 16 KiB a tile.
 pub const TILE_SIZE: u32 = 64;
@@ -64,11 +67,18 @@ impl TextureInfo {
 /// (edge tiles are padded by repeating their last texel).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Tile {
-    pub texels: Box<[u32]>,
+    /// Its own, or in place in a card's mapped memory ([`Region`]).
+    pub texels: Region<u32>,
 }
 
 impl Tile {
     pub fn from_words(words: Box<[u32]>) -> Result<Tile, DataError> {
+        Tile::from_region(Region::own(words))
+    }
+
+    /// A tile wherever its texels lie: any texel value is a colour, so the size is all
+    /// there is to check.
+    pub fn from_region(words: Region<u32>) -> Result<Tile, DataError> {
         if words.len() != TILE_TEXELS {
             return Err(DataError::Corrupt(format!(
                 "texture tile has {} texels, expected {TILE_TEXELS}",
@@ -101,7 +111,7 @@ pub fn make_tiles(width: u32, height: u32, rgba: &[u8]) -> Vec<Tile> {
                 }
             }
             tiles.push(Tile {
-                texels: texels.into_boxed_slice(),
+                texels: texels.into(),
             });
         }
     }
