@@ -498,6 +498,48 @@ mod tests {
     use proptest::prelude::*;
 
     #[test]
+    fn a_texture_encodes_as_a_plain_byte_sequence_would() {
+        // Its pixels are written as one byte string; the bytes on the wire (and so the
+        // scene's hash in checkpoints) must be those of a sequence of u8.
+        use renderer::{
+            scene::TextureDesc,
+            texture::{Filter, Wrap},
+        };
+        #[derive(Serialize)]
+        struct Plain {
+            name: String,
+            width: u32,
+            height: u32,
+            rgba: Vec<u8>,
+            wrap_s: Wrap,
+            wrap_t: Wrap,
+            filter: Filter,
+        }
+        let rgba: Vec<u8> = (0..300u32).map(|i| (i * 7) as u8).collect();
+        let t = TextureDesc {
+            name: "t".into(),
+            width: 5,
+            height: 15,
+            rgba: rgba.clone(),
+            wrap_s: Wrap::default(),
+            wrap_t: Wrap::default(),
+            filter: Filter::default(),
+        };
+        let plain = Plain {
+            name: "t".into(),
+            width: 5,
+            height: 15,
+            rgba,
+            wrap_s: Wrap::default(),
+            wrap_t: Wrap::default(),
+            filter: Filter::default(),
+        };
+        let bytes = encode_value(&t);
+        assert_eq!(bytes, encode_value(&plain));
+        assert_eq!(decode_value::<TextureDesc>(&bytes).unwrap(), t);
+    }
+
+    #[test]
     fn round_trip_and_kind_is_the_tag() {
         let msgs = [
             Message::Welcome,
