@@ -337,7 +337,9 @@ impl Bvh8 {
         Ok(bvh)
     }
 
-    /// Checks what [`Bvh8::in_block`] promises. A slot whose child is node 0 (the root,
+    /// Checks what [`Bvh8::in_block`] promises, and that the tree is no deeper than the walk's
+    /// stack is made for (as `bvh::validate_tree` does for the wire form), with every child
+    /// after its parent, as our builder writes them. A slot whose child is node 0 (the root,
     /// nobody's child) must be empty: boxes no ray enters.
     fn validate(&self, tri_count: u32) -> Result<(), WalkFormError> {
         let bad = |what: String| Err(WalkFormError::NotATree(what));
@@ -352,11 +354,18 @@ impl Bvh8 {
         if self.nodes.is_empty() {
             return Ok(());
         }
-        let mut seen = vec![false; self.nodes.len()];
-        seen[0] = true;
-        let mut work = vec![0usize];
-        while let Some(i) = work.pop() {
-            let n = &self.nodes[i];
+        // Our builder writes every node before its children, so a child's index is above its
+        // parent's: one pass in index order then sees each parent's depth before its
+        // children, refuses cycles (an index never goes down) and shared nodes (a node is
+        // reached once), and reads the nodes in memory order.
+        let count = self.nodes.len();
+        let mut depth = vec![0u16; count];
+        depth[0] = 1;
+        for (i, n) in self.nodes.iter().enumerate() {
+            let d = depth[i];
+            if d == 0 {
+                continue; // not reached from the root: never walked
+            }
             for (slot, &c) in n.child.iter().enumerate() {
                 if c & LEAF != 0 {
                     if (c & !LEAF) as usize >= self.leaves.len() {
@@ -375,14 +384,16 @@ impl Bvh8 {
                         return bad(format!("node {i} slot {slot} leads back to the root"));
                     }
                 } else {
-                    match seen.get_mut(c as usize) {
-                        None => {
-                            return bad(format!("node {i} names node {c} of {}", self.nodes.len()));
-                        }
-                        Some(s) if *s => return bad(format!("node {c} is reached twice")),
-                        Some(s) => *s = true,
+                    let Some(reached) = depth.get_mut(c as usize).filter(|_| c as usize > i) else {
+                        return bad(format!("node {i} names node {c} of {count}"));
+                    };
+                    if *reached != 0 {
+                        return bad(format!("node {c} is reached twice"));
                     }
-                    work.push(c as usize);
+                    if d as usize >= MAX_DEPTH {
+                        return bad(format!("deeper than {MAX_DEPTH} levels"));
+                    }
+                    *reached = d + 1;
                 }
             }
         }

@@ -223,16 +223,18 @@ impl Chunk {
         {
             return Err(ChunkError::NonFinite);
         }
-        for (tri, idx) in chunk.tri_vertices().iter().enumerate() {
-            for &vertex in idx {
-                if vertex >= header.vertex_count {
-                    return Err(ChunkError::VertexOutOfRange {
-                        tri,
-                        vertex,
-                        count: header.vertex_count,
-                    });
-                }
-            }
+        // The largest index first (a branch-free pass), the culprit only if there is one.
+        let indices: &[u32] = bytemuck::cast_slice(chunk.tri_vertices());
+        if indices.iter().fold(0, |m, &v| m.max(v)) >= header.vertex_count && !indices.is_empty() {
+            let at = indices
+                .iter()
+                .position(|&v| v >= header.vertex_count)
+                .unwrap_or(0);
+            return Err(ChunkError::VertexOutOfRange {
+                tri: at / 3,
+                vertex: indices[at],
+                count: header.vertex_count,
+            });
         }
         match walk {
             Some(w) => {
