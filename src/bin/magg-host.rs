@@ -1093,6 +1093,12 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
             l.reason,
             l.subscreens_reassigned
         );
+        if l.role == "fork node" {
+            eprintln!(
+                "  its share ({} chunks and tiles) rebuilt on the live fork nodes; rendering went on {:.2} s after the loss",
+                l.items_moved, l.recovered_after_s
+            );
+        }
     }
 }
 
