@@ -359,9 +359,10 @@ fn a_killed_fork_node_container_leaves_the_image_unchanged() {
     assert!(lost[0]["items_moved"].as_u64().unwrap() >= 1, "{stats}");
     // The time from the kill to the render going on, for the summary (not asserted).
     eprintln!(
-        "fork node container killed: lost {:.2} s into the render, rendering went on {:.3} s after the loss, {} items rebuilt, {} subscreens queued again",
+        "fork node container killed: lost {:.2} s into the render, rendering went on {:.3} s after the loss (its render nodes' pixels again after {} s), {} items rebuilt, {} subscreens queued again",
         lost[0]["after_s"].as_f64().unwrap(),
         lost[0]["recovered_after_s"].as_f64().unwrap(),
+        lost[0]["served_rows_after_s"],
         lost[0]["items_moved"],
         lost[0]["subscreens_reassigned"]
     );

@@ -164,6 +164,10 @@ pub struct LostNode {
     /// placed on the live cards, its render nodes served by another, their unfinished work
     /// queued again; 0 for a render node (its work is queued again at once).
     pub recovered_after_s: f64,
+    /// For a fork node: seconds from noticing the loss until the first pixels of a render
+    /// node it served reached the frame buffer through another fork node (none if the
+    /// render ended first).
+    pub served_rows_after_s: Option<f64>,
 }
 
 impl LostNode {
@@ -299,6 +303,7 @@ impl Faults {
             subscreens_reassigned: 0,
             items_moved: 0,
             recovered_after_s: 0.0,
+            served_rows_after_s: None,
         };
         if role != Role::Render {
             let live_forks = topo
@@ -661,6 +666,9 @@ struct Rendering {
     /// The scene as the host sent it and where its items are: a lost fork node's share is
     /// rebuilt from it.
     copy: HostCopy,
+    /// Lost fork nodes whose render nodes have not yet had pixels arrive since: the fork
+    /// node, the render nodes it served, when the loss was noticed.
+    resuming: Vec<(NodeId, Vec<NodeId>, Instant)>,
     f: fabric::Fabric,
 }
 
@@ -717,6 +725,7 @@ impl Rendering {
             },
             progress: Progress::new(total, config.render.progress),
             copy,
+            resuming: Vec::new(),
             f,
         }
     }
@@ -793,6 +802,7 @@ impl Rendering {
                     }
                 };
                 let mut reassigned = 0;
+                self.resuming.push((peer, served.clone(), detected));
                 for r in served {
                     let actions = self.scheduler.take_back(r);
                     for a in &actions {
@@ -892,7 +902,10 @@ impl Rendering {
                         stored = true;
                     }
                 }
-                Action::FirstPixels { node, subscreen } => event_first_pixels(node, subscreen),
+                Action::FirstPixels { node, subscreen } => {
+                    event_first_pixels(node, subscreen);
+                    self.resumed(node, faults);
+                }
                 Action::Reassigned { node, subscreens } => {
                     if let Some(l) = faults.lost.iter_mut().find(|l| l.node == node) {
                         l.subscreens_reassigned = subscreens;
@@ -913,6 +926,24 @@ impl Rendering {
             self.progress
                 .update(total - self.scheduler.missing(), total);
         }
+    }
+
+    /// Pixels of `node` arrived: if it was served by a lost fork node, they came through
+    /// another, and the lost card renders again.
+    fn resumed(&mut self, node: NodeId, faults: &mut Faults) {
+        self.resuming.retain(|(fork, served, detected)| {
+            if !served.contains(&node) {
+                return true;
+            }
+            let after = detected.elapsed().as_secs_f64();
+            if let Some(l) = faults.lost.iter_mut().find(|l| l.node == *fork) {
+                l.served_rows_after_s = Some(after);
+            }
+            tracing::info!(
+                "render node {node}, served by lost fork node {fork}, renders again: its pixels arrive {after:.2} s after the loss"
+            );
+            false
+        });
     }
 
     fn answer(&mut self, request: Request, answer: Answer) {
