@@ -312,11 +312,11 @@ impl Faults {
                 .filter(|&n| n != peer && f.is_alive(n))
                 .count();
             let why = match (live_forks, recoverable) {
-                (0, _) => "no fork node is left to hold its share of the scene",
-                (_, false) => "the scene was still being placed",
-                _ => "",
+                (0, _) => Some("no fork node is left to hold its share of the scene"),
+                (_, false) => Some("the scene was still being placed"),
+                _ => None,
             };
-            if !why.is_empty() {
+            if let Some(why) = why {
                 return Err(ClusterRenderError::ForkNodeLost {
                     node: Box::new(lost),
                     why: why.into(),
