@@ -329,22 +329,44 @@ fn a_killed_and_a_disconnected_render_node_leave_the_image_unchanged() {
 
 #[test]
 #[ignore = "needs a Docker daemon: scripts/test.sh runs it when one answers"]
-fn a_killed_fork_node_container_ends_the_render_cleanly() {
+fn a_killed_fork_node_container_leaves_the_image_unchanged() {
     let _serial = serial();
-    let p = Project::new("forknode", true, &LONG_RENDER.join(" "));
-    p.start();
+    // Two cards, so that a fork node has another to stand in for it; every DMA read over TCP
+    // (the base file shares no memory between containers). Eight render nodes finish the
+    // long render sooner than four: more samples keep it going past the kill.
+    let args: Vec<&str> = LONG_RENDER
+        .iter()
+        .map(|&a| if a == "400" { "2000" } else { a })
+        .chain(["--chunk-triangles", "16"])
+        .collect();
+    let mut p = Project::new("forknode", false, &args.join(" "));
+    p.env.push(("MAGG_TOPOLOGY".into(), "grid:2x2x2".into()));
+    p.env
+        .push(("MAGG_HOST_LOG".into(), "info,magg::event=debug".into()));
+    p.start_with(&["--scale", "fork-node=2", "--scale", "render-node=8"]);
+    p.wait_log("MAGG_EVENT pixels", Duration::from_secs(60));
     let fork = p.containers("fork-node").pop().unwrap();
-    let killed = Instant::now();
-    assert!(docker(&["kill", &fork]).status.success());
-    let code = p.host_exit(Duration::from_secs(10));
-    assert!(
-        matches!(code, Some(c) if c != 0),
-        "the host should fail within 10 s: {code:?} {}",
-        p.host_log()
+    let o = docker(&["kill", &fork]);
+    assert!(o.status.success(), "{}", text(&o));
+    let code = p.host_exit(Duration::from_secs(300));
+    let log = p.host_log();
+    assert_eq!(code, Some(0), "host: {log}");
+    assert!(log.contains("lost fork node"), "{log}");
+    let stats = p.stats();
+    let lost = stats["lost_nodes"].as_array().unwrap();
+    assert_eq!(lost.len(), 1, "{stats}");
+    assert_eq!(lost[0]["role"], "fork node", "{stats}");
+    assert!(lost[0]["items_moved"].as_u64().unwrap() >= 1, "{stats}");
+    // The time from the kill to the render going on, for the summary (not asserted).
+    eprintln!(
+        "fork node container killed: lost {:.2} s into the render, rendering went on {:.3} s after the loss (its render nodes' pixels again after {} s), {} items rebuilt, {} subscreens queued again",
+        lost[0]["after_s"].as_f64().unwrap(),
+        lost[0]["recovered_after_s"].as_f64().unwrap(),
+        lost[0]["served_rows_after_s"],
+        lost[0]["items_moved"],
+        lost[0]["subscreens_reassigned"]
     );
-    assert!(killed.elapsed() < Duration::from_secs(10));
-    assert!(p.host_log().contains("lost fork node"), "{}", p.host_log());
-    assert!(!p.out().exists(), "no image after a failed render");
+    same_bytes(&p.out(), &in_process_here(&p.dir, &args));
     p.all_stopped(Duration::from_secs(10));
 }
 

@@ -412,6 +412,31 @@ impl Topology {
         self.fork_nodes()[0]
     }
 
+    /// The fork node that serves render node `id` while the nodes `alive` says are alive
+    /// live: its card's, or, once that one is lost, the live fork node of the nearest card
+    /// (the lower card on a tie), so that every node that knows the same losses picks the
+    /// same one without asking. `None` when no fork node is alive.
+    pub fn serving_fork(&self, id: NodeId, alive: &[bool]) -> Option<NodeId> {
+        let live = |f: &NodeId| alive.get(*f as usize).copied().unwrap_or(false);
+        let own = self.fork_of(id);
+        if let Some(f) = own.filter(live) {
+            return Some(f);
+        }
+        let card = self.card(id).unwrap_or(0) as i32;
+        self.fork_nodes().into_iter().filter(live).min_by_key(|&f| {
+            let c = self.card(f).unwrap_or(0) as i32;
+            ((c - card).abs(), c)
+        })
+    }
+
+    /// The first live fork node: the G-bus arbiter, a role that passes on when its holder
+    /// is lost.
+    pub fn first_live_fork(&self, alive: &[bool]) -> Option<NodeId> {
+        self.fork_nodes()
+            .into_iter()
+            .find(|&f| alive.get(f as usize).copied().unwrap_or(false))
+    }
+
     pub fn cards(&self) -> Vec<u16> {
         self.nodes
             .iter()
@@ -548,6 +573,31 @@ mod tests {
         assert_eq!(g.counts(), (10, 400));
         assert!(Topology::preset("grid:0x1x1").is_err());
         assert!(Topology::preset("grid:2x2").is_err());
+    }
+
+    #[test]
+    fn a_lost_fork_nodes_render_nodes_go_to_the_nearest_live_card() {
+        let t = Topology::preset("magg").unwrap();
+        let mut alive = vec![true; t.len()];
+        // Render node 6 is on card 0 (fork node 1), node 10 on card 1 (fork node 2).
+        assert_eq!(t.serving_fork(6, &alive), Some(1));
+        assert_eq!(t.first_live_fork(&alive), Some(1));
+        alive[2] = false;
+        assert_eq!(t.serving_fork(6, &alive), Some(1), "its own card is alive");
+        assert_eq!(
+            t.serving_fork(10, &alive),
+            Some(1),
+            "a tie goes to the lower card"
+        );
+        alive[1] = false;
+        assert_eq!(t.serving_fork(6, &alive), Some(3));
+        assert_eq!(t.serving_fork(10, &alive), Some(3));
+        assert_eq!(t.first_live_fork(&alive), Some(3));
+        for f in t.fork_nodes() {
+            alive[f as usize] = false;
+        }
+        assert_eq!(t.serving_fork(6, &alive), None);
+        assert_eq!(t.first_live_fork(&alive), None);
     }
 
     #[test]

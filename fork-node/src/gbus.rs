@@ -1,7 +1,8 @@
 //! The G-bus: two buses between the cards' shared memories, through which a fork node reads
 //! items another card holds. The data comes from the card that holds it; the bus time comes
 //! from the arbiter, the first fork node, which books every transfer on the bus free first
-//! (the model's round-robin arbitration), so that all cards see one consistent bus.
+//! (the model's round-robin arbitration), so that all cards see one consistent bus. When the
+//! arbiter is lost, the first live fork node arbitrates from then on.
 
 use std::sync::{
     Mutex,
@@ -64,7 +65,9 @@ impl ForkNode {
         ready_ns: u64,
     ) -> Option<(Box<[u32]>, u64)> {
         let f = &self.fabric;
-        let master = f.topology().master_fork();
+        // The arbiter: the first fork node, or the first still alive once it is lost (the
+        // bookings start afresh there; they are model time, never pixels).
+        let master = f.first_live_fork().unwrap_or(f.me());
         let read = Message::RemoteRead { id, ready_ns };
         let data = f.request(owner, &read, Box::new([]), Route::Direct, REQUEST_TIMEOUT);
         let bytes = {

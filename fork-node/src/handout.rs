@@ -3,9 +3,12 @@
 //! chunk and tile too. Whichever of the header, the last held item and the job arrives last
 //! triggers it, so the handout remembers what it has already begun.
 
-use std::sync::{
-    Arc, Mutex,
-    atomic::{AtomicBool, Ordering},
+use std::{
+    collections::HashSet,
+    sync::{
+        Arc, Mutex,
+        atomic::{AtomicBool, Ordering},
+    },
 };
 
 use fabric::clock::now_ns;
@@ -17,6 +20,9 @@ use crate::ForkNode;
 pub(crate) struct Handout {
     job: Mutex<Option<JobSpec>>,
     header_sent: AtomicBool,
+    /// Render nodes given the header: this card's, and those of a lost fork node's card that
+    /// this one serves now.
+    header_sent_to: Mutex<HashSet<NodeId>>,
     batch_started: AtomicBool,
 }
 
@@ -52,17 +58,33 @@ impl ForkNode {
             // Announced before the header, on the same connections, so that a render node
             // knows the segment before it starts rendering.
             self.publish_segment(&card);
+        }
+        // Render nodes this card serves that have no header from it yet: at first its own;
+        // after another fork node is lost, that card's too (one that started already keeps
+        // the header it has: the same scene).
+        let new: Vec<NodeId> = {
+            let mut sent = self.handout.header_sent_to.lock().expect("handout lock");
+            self.served_render_nodes()
+                .into_iter()
+                .filter(|&r| sent.insert(r))
+                .collect()
+        };
+        if !new.is_empty() {
             let msg = Message::Header {
                 len: header.len() as u64,
                 chunk_owner: table.0,
                 tile_owner: table.1,
             };
             let words = bytes_to_words(&header);
-            for &r in &card {
+            for r in new {
                 let ready = self
                     .serving
                     .dma_done(f.model(), words.len() as u64 * 4, now_ns());
-                let _ = f.send_direct(r, &msg, words.clone(), 0, ready);
+                if f.has_direct(r) {
+                    let _ = f.send_direct(r, &msg, words.clone(), 0, ready);
+                } else {
+                    let _ = f.send(r, &msg, words.clone(), 0);
+                }
             }
         }
         if self.handout.batch_job() && !self.handout.batch_started.swap(true, Ordering::SeqCst) {
@@ -77,6 +99,17 @@ impl ForkNode {
         t.render_nodes()
             .into_iter()
             .filter(|&r| t.fork_of(r) == Some(self.fabric.me()))
+            .collect()
+    }
+
+    /// The render nodes this fork node serves now: its card's, and those of lost fork
+    /// nodes' cards that [`fabric::Topology::serving_fork`] gives it.
+    pub(crate) fn served_render_nodes(&self) -> Vec<NodeId> {
+        let f = &self.fabric;
+        f.topology()
+            .render_nodes()
+            .into_iter()
+            .filter(|&r| f.is_alive(r) && f.serving_fork(r) == Some(f.me()))
             .collect()
     }
 

@@ -8,6 +8,11 @@
 //! over the G-bus; and writes the pixel rows they send into the host's frame buffer. The
 //! first fork node also arbitrates the two G-buses for everyone.
 //!
+//! When a fork node is lost, the host sends the live ones the items it held and a new
+//! address table (as more `Hold`s and a `Header`); the first live fork node arbitrates the
+//! buses, and each serves, besides its own card, the render nodes of lost cards that
+//! [`fabric::Topology::serving_fork`] gives it.
+//!
 //! The node's life (joining, stopping, losing the host) is [`fabric::role::run_role`]'s.
 //! What is left is split by job, each with the state only it locks:
 //!
@@ -162,14 +167,17 @@ impl ForkNode {
                 }
             }
             Message::RemoteRead { id, .. } => {
-                let data = self.read_local(id);
-                let _ = f.reply(
-                    &frame,
-                    &Message::RemoteData { id, done_ns: 0 },
-                    data,
-                    Route::Direct,
-                    0,
-                );
+                tokio::spawn(async move {
+                    let deadline = std::time::Instant::now() + serving::REBUILD_WAIT;
+                    let data = self.held(id, deadline).await.unwrap_or_default();
+                    let _ = f.reply(
+                        &frame,
+                        &Message::RemoteData { id, done_ns: 0 },
+                        data,
+                        Route::Direct,
+                        0,
+                    );
+                });
             }
             Message::BusRequest { bytes, ready_ns } => {
                 let done_ns = self.gbus.book(f.model(), bytes as u64, ready_ns);

@@ -1,17 +1,29 @@
 //! Serving the card's render nodes: demand requests answered from this card's memory or,
 //! for items another card holds, over the G-bus; sent back by DMA or through the mesh as the
 //! request asks. The card has one DMA bus, so DMA transfers queue behind each other in model
-//! time; that queue is this job's own state.
+//! time; that queue is this job's own state. When a fork node is lost, requests for what it
+//! held wait until the host has placed that share on the live cards.
 
-use std::sync::{
-    Arc, Mutex,
-    atomic::{AtomicU64, Ordering},
+use std::{
+    sync::{
+        Arc, Mutex,
+        atomic::{AtomicU64, Ordering},
+    },
+    time::{Duration, Instant},
 };
 
 use fabric::{Model, Route, clock::now_ns};
 use protocol::{DataId, Frame, Message, NodeId, Transfer};
 
 use crate::ForkNode;
+
+/// How long a request waits for the item it asks for to have a live holder again: the host
+/// rebuilds a lost card's share from its own copy of the scene in about the time it takes to
+/// prepare the scene.
+pub(crate) const REBUILD_WAIT: Duration = Duration::from_secs(120);
+
+/// How often a request waiting for an item looks again.
+const POLL: Duration = Duration::from_millis(20);
 
 #[derive(Default)]
 pub(crate) struct Serving {
@@ -41,7 +53,8 @@ impl Serving {
 impl ForkNode {
     /// Answers a render node's demand request, by DMA or through the mesh. Without
     /// `payload` (the render node reads the bytes from a shared segment) the reply carries
-    /// no data, but every model time is charged as if it did.
+    /// no data, but every model time is charged as if it did. An item whose holder is lost
+    /// is waited for until the host has rebuilt that card's share on a live one.
     pub(crate) async fn serve_request(
         &self,
         request: Frame,
@@ -52,42 +65,59 @@ impl ForkNode {
     ) {
         let f = &self.fabric;
         let ready = now_ns();
-        // Our own address table decides where data lives, when we have one.
-        let owner = self
-            .memory
-            .lock()
-            .expect("memory lock")
-            .owner(id)
-            .unwrap_or(owner);
-        let (data, ready) = if owner == f.me() {
-            (self.read_local(id), ready)
-        } else {
-            match self.fetch_remote(id, owner, ready).await {
-                Some(x) => x,
-                None => return,
+        let deadline = Instant::now() + REBUILD_WAIT;
+        let (data, ready) = loop {
+            // Our own address table decides where data lives, when we have one; the host
+            // changes it when a fork node is lost.
+            let owner = self
+                .memory
+                .lock()
+                .expect("memory lock")
+                .owner(id)
+                .unwrap_or(owner);
+            let got = if owner == f.me() {
+                self.held(id, deadline).await.map(|d| (d, ready))
+            } else if f.is_alive(owner) {
+                self.fetch_remote(id, owner, ready).await
+            } else {
+                None
+            };
+            if let Some(x) = got {
+                break x;
             }
+            if Instant::now() >= deadline {
+                tracing::warn!(
+                    "fork node {}: no live fork node holds {id:?}; node {} is not answered",
+                    f.me(),
+                    request.header.sender
+                );
+                return;
+            }
+            tokio::time::sleep(POLL).await;
         };
         let bytes = data.len() as u64 * 4;
         self.serving.count_served(bytes);
         let data = if payload { data } else { Box::default() };
-        let result = match transfer {
-            Transfer::Dma => {
-                let done = self.serving.dma_done(f.model(), bytes, ready);
-                f.reply(
-                    &request,
-                    &Message::DataReply { id },
-                    data,
-                    Route::Direct,
-                    done,
-                )
-            }
-            Transfer::Serial => f.reply(
+        // A render node of a lost fork node's card has no DMA connection here: its answers
+        // go through the mesh (same bytes, another model time).
+        let dma = transfer == Transfer::Dma && f.has_direct(request.header.sender);
+        let result = if dma {
+            let done = self.serving.dma_done(f.model(), bytes, ready);
+            f.reply(
+                &request,
+                &Message::DataReply { id },
+                data,
+                Route::Direct,
+                done,
+            )
+        } else {
+            f.reply(
                 &request,
                 &Message::DataReply { id },
                 data,
                 Route::Mesh,
                 ready,
-            ),
+            )
         };
         if let Err(e) = result {
             tracing::warn!(
@@ -95,6 +125,25 @@ impl ForkNode {
                 f.me(),
                 request.header.sender
             );
+        }
+    }
+
+    /// Item `id` from this card's memory, waiting until `deadline` for it to arrive: after
+    /// a fork node is lost, the address table may name this card before the host's copy of
+    /// the item is here. A synthetic item (the host's transfer measurements) is zeros of its
+    /// size.
+    pub(crate) async fn held(&self, id: DataId, deadline: Instant) -> Option<Box<[u32]>> {
+        loop {
+            if let DataId::Synthetic { .. } = id {
+                return Some(self.read_local(id));
+            }
+            if let Some(d) = self.memory.lock().expect("memory lock").data.get(&id) {
+                return Some(d.to_vec().into_boxed_slice());
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            tokio::time::sleep(POLL).await;
         }
     }
 

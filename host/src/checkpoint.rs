@@ -1,5 +1,5 @@
 //! The checkpoint of a render in progress, so that nothing finished is lost to a crash, a
-//! Ctrl-C, a power cut or a lost fork node.
+//! Ctrl-C, a power cut or the loss of the only fork node.
 //!
 //! Beside the output `OUT` the host keeps `OUT.partial`: the finished scan lines and what
 //! they were rendered from (a hash of the scene description and preparation options, the

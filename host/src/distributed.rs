@@ -27,6 +27,7 @@ use crate::{
     cluster::{Cluster, ClusterConfig, start},
     inprocess::{RenderConfig, RenderError, check_settings},
     progress::Progress,
+    recovery::HostCopy,
     schedule::{self, Action, Answer, Request, Scheduler},
     stats::{FetchedVia, RenderStats, SubscreenRecord},
 };
@@ -94,10 +95,10 @@ pub enum ClusterRenderError {
     #[error("node {node} failed: {message}")]
     NodeFailed { node: NodeId, message: String },
     #[error(
-        "lost {}: {}; the render cannot go on without its share of the scene, so the cluster is stopped and no image is written",
+        "lost {}: {}; {why}, so the cluster is stopped and no image is written",
         .node.who(), .node.reason
     )]
-    ForkNodeLost { node: Box<LostNode> },
+    ForkNodeLost { node: Box<LostNode>, why: String },
     #[error("every render node is lost; no image is written")]
     NoRenderNodeLeft,
     #[error("the host's fabric stopped, so no message can reach it")]
@@ -154,8 +155,19 @@ pub struct LostNode {
     pub reason: String,
     /// Seconds since the host started the render.
     pub after_s: f64,
-    /// Subscreens it held with rows still missing, handed to other nodes.
+    /// Subscreens it held with rows still missing, handed to other nodes; for a fork node,
+    /// those of the render nodes it served, whose rows on their way were lost with it.
     pub subscreens_reassigned: u32,
+    /// For a fork node: chunks and tiles of its share rebuilt on live cards.
+    pub items_moved: u32,
+    /// Seconds from noticing the loss until rendering went on: for a fork node, its share
+    /// placed on the live cards, its render nodes served by another, their unfinished work
+    /// queued again; 0 for a render node (its work is queued again at once).
+    pub recovered_after_s: f64,
+    /// For a fork node: seconds from noticing the loss until the first pixels of a render
+    /// node it served reached the frame buffer through another fork node (none if the
+    /// render ended first).
+    pub served_rows_after_s: Option<f64>,
 }
 
 impl LostNode {
@@ -259,19 +271,21 @@ struct Faults {
 }
 
 impl Faults {
-    /// A connection to `peer` ended. A lost fork node ends the render (its share of the scene
-    /// is gone); a lost render node is declared dead to everyone, who route around it. Returns
-    /// whether a render node was newly lost.
+    /// A connection to `peer` ended. A lost node is declared dead to everyone, who route
+    /// around it; returns what the loss asks of the render, if `peer` was newly lost. A lost
+    /// fork node ends the render when no fork node is left to hold its share of the scene,
+    /// or while the scene is being placed (not `recoverable`).
     fn on_lost(
         &mut self,
         cluster: &Cluster,
         peer: NodeId,
         reason: &str,
-    ) -> Result<bool, ClusterRenderError> {
+        recoverable: bool,
+    ) -> Result<Option<Loss>, ClusterRenderError> {
         let f = &cluster.formed.fabric;
         let topo = f.topology();
         if peer == 0 || peer as usize >= topo.len() || !f.is_alive(peer) {
-            return Ok(false);
+            return Ok(None);
         }
         let member = cluster.formed.members.iter().find(|m| m.node == peer);
         let (advertise, pid, hostname) = member.map_or((String::new(), 0, String::new()), |m| {
@@ -287,19 +301,46 @@ impl Faults {
             reason: reason.to_string(),
             after_s: self.started.elapsed().as_secs_f64(),
             subscreens_reassigned: 0,
+            items_moved: 0,
+            recovered_after_s: 0.0,
+            served_rows_after_s: None,
         };
-        // Re-homing the render nodes of a lost fork node on another would go here (with
-        // `Scheduler::take_back` for the rows they had on their way); until then the render
-        // cannot go on.
         if role != Role::Render {
-            return Err(ClusterRenderError::ForkNodeLost {
-                node: Box::new(lost),
-            });
+            let live_forks = topo
+                .fork_nodes()
+                .into_iter()
+                .filter(|&n| n != peer && f.is_alive(n))
+                .count();
+            let why = match (live_forks, recoverable) {
+                (0, _) => Some("no fork node is left to hold its share of the scene"),
+                (_, false) => Some("the scene was still being placed"),
+                _ => None,
+            };
+            if let Some(why) = why {
+                return Err(ClusterRenderError::ForkNodeLost {
+                    node: Box::new(lost),
+                    why: why.into(),
+                });
+            }
         }
-        tracing::warn!(
-            "lost {}: {reason}; its unfinished subscreens go to other nodes, and routes go around it",
-            lost.who()
-        );
+        // The render nodes it served, before the loss changes who serves them.
+        let served: Vec<NodeId> = topo
+            .render_nodes()
+            .into_iter()
+            .filter(|&r| f.is_alive(r) && f.serving_fork(r) == Some(peer))
+            .collect();
+        if role == Role::Render {
+            tracing::warn!(
+                "lost {}: {reason}; its unfinished subscreens go to other nodes, and routes go around it",
+                lost.who()
+            );
+        } else {
+            tracing::warn!(
+                "lost {}: {reason}; its share of the scene is rebuilt on the live fork nodes from the host's copy, and its {} render nodes go to another",
+                lost.who(),
+                served.len()
+            );
+        }
         f.mark_dead(peer);
         for m in &cluster.formed.members {
             if m.node != peer && f.is_alive(m.node) {
@@ -310,8 +351,20 @@ impl Faults {
         if !topo.render_nodes().into_iter().any(|n| f.is_alive(n)) {
             return Err(ClusterRenderError::NoRenderNodeLeft);
         }
-        Ok(true)
+        Ok(Some(match role {
+            Role::Render => Loss::Render,
+            _ => Loss::Fork { served },
+        }))
     }
+}
+
+/// What a loss asks of the render going on.
+enum Loss {
+    /// A render node: its work goes to others.
+    Render,
+    /// A fork node: its share of the scene is to be rebuilt, and the rows its render nodes
+    /// (`served`) sent through it may be lost.
+    Fork { served: Vec<NodeId> },
 }
 
 async fn drive(
@@ -327,8 +380,17 @@ async fn drive(
         started: t0,
         lost: Vec::new(),
     };
-    let scene_sha256 = upload_scene(&f, desc, rc.prepare.chunk_triangles as u32)?;
-    let scene = await_header(cluster, cancel, &mut faults).await?;
+    let chunk_triangles = rc.prepare.chunk_triangles as u32;
+    let (scene_sha256, encoded) = upload_scene(&f, desc, chunk_triangles)?;
+    let placed = await_header(cluster, cancel, &mut faults).await?;
+    let scene = placed.scene;
+    let copy = HostCopy {
+        encoded,
+        chunk_triangles,
+        header: placed.header,
+        chunk_owner: placed.chunk_owner,
+        tile_owner: placed.tile_owner,
+    };
     let load_s = t0.elapsed().as_secs_f64();
     let plan = plan_job(config, &scene, f.topology().render_nodes())?;
     let (width, height) = (plan.job.settings.width, plan.job.settings.height);
@@ -349,7 +411,7 @@ async fn drive(
     send_job(&f, &plan.job)?;
 
     let t1 = Instant::now();
-    let mut frame = Rendering::new(config, &plan, &faults, f.clone(), kept, t1);
+    let mut frame = Rendering::new(config, &plan, &faults, f.clone(), kept, copy, t1);
     if let Err(e) = frame.run(cluster, cancel, &mut faults).await {
         // What is finished outlives the render: `--resume` continues from it.
         frame.save();
@@ -394,12 +456,13 @@ async fn drive(
 }
 
 /// Sends the scene to the first fork node, in parts that fit a frame; returns the scene's
-/// digest for the checkpoint, taken from the same encoding.
+/// digest for the checkpoint, taken from the same encoding, and the encoding, kept to
+/// rebuild a lost fork node's share from.
 fn upload_scene(
     f: &fabric::Fabric,
     desc: renderer::SceneDesc,
     chunk_triangles: u32,
-) -> Result<String, ClusterRenderError> {
+) -> Result<(String, Vec<u8>), ClusterRenderError> {
     let master = f.topology().master_fork();
     let bytes = encode_value(&desc);
     drop(desc);
@@ -420,15 +483,24 @@ fn upload_scene(
                 source,
             })?;
     }
-    Ok(digest)
+    Ok((digest, bytes))
 }
 
-/// Waits for the prepared scene's header from the first fork node.
+/// The prepared scene as the first fork node placed it.
+struct Placed {
+    scene: SceneHeader,
+    /// The header as it travelled.
+    header: Vec<u8>,
+    chunk_owner: Vec<NodeId>,
+    tile_owner: Vec<NodeId>,
+}
+
+/// Waits for the prepared scene's header and address table from the first fork node.
 async fn await_header(
     cluster: &mut Cluster,
     cancel: &AtomicBool,
     faults: &mut Faults,
-) -> Result<SceneHeader, ClusterRenderError> {
+) -> Result<Placed, ClusterRenderError> {
     let master = cluster.formed.fabric.topology().master_fork();
     loop {
         let Some(delivery) = next(cluster, cancel).await? else {
@@ -439,8 +511,19 @@ async fn await_header(
                 frame,
                 via: Via::Direct(_),
             } => {
-                if let Ok(Message::Header { len, .. }) = frame.message() {
-                    return read_header(&frame, len);
+                if let Ok(Message::Header {
+                    len,
+                    chunk_owner,
+                    tile_owner,
+                }) = frame.message()
+                {
+                    let (scene, header) = read_header(&frame, len)?;
+                    return Ok(Placed {
+                        scene,
+                        header,
+                        chunk_owner,
+                        tile_owner,
+                    });
                 }
             }
             Delivery::Frame {
@@ -459,15 +542,15 @@ async fn await_header(
                 _ => {}
             },
             Delivery::Lost { peer, reason, .. } => {
-                faults.on_lost(cluster, peer, &reason)?;
+                faults.on_lost(cluster, peer, &reason, false)?;
             }
             _ => {}
         }
     }
 }
 
-/// The scene of a header frame, checked as the render nodes check it.
-fn read_header(frame: &Frame, len: u64) -> Result<SceneHeader, ClusterRenderError> {
+/// The scene of a header frame, checked as the render nodes check it, and its bytes.
+fn read_header(frame: &Frame, len: u64) -> Result<(SceneHeader, Vec<u8>), ClusterRenderError> {
     let node = frame.header.sender;
     let bytes = words_to_bytes(&frame.data, len as usize)
         .ok_or(ClusterRenderError::ShortHeader { node, len })?;
@@ -476,7 +559,7 @@ fn read_header(frame: &Frame, len: u64) -> Result<SceneHeader, ClusterRenderErro
     scene
         .validate()
         .map_err(|source| ClusterRenderError::HeaderInvalid { node, source })?;
-    Ok(scene)
+    Ok((scene, bytes.to_vec()))
 }
 
 /// What every node is told to do, and how the image is cut.
@@ -580,6 +663,12 @@ struct Rendering {
     requests: HashMap<Request, Frame>,
     times: SubscreenTimes,
     progress: Progress,
+    /// The scene as the host sent it and where its items are: a lost fork node's share is
+    /// rebuilt from it.
+    copy: HostCopy,
+    /// Lost fork nodes whose render nodes have not yet had pixels arrive since: the fork
+    /// node, the render nodes it served, when the loss was noticed.
+    resuming: Vec<(NodeId, Vec<NodeId>, Instant)>,
     f: fabric::Fabric,
 }
 
@@ -590,6 +679,7 @@ impl Rendering {
         faults: &Faults,
         f: fabric::Fabric,
         kept: Checkpoint,
+        copy: HostCopy,
         now: Instant,
     ) -> Rendering {
         let (width, height) = (plan.job.settings.width, plan.job.settings.height);
@@ -634,6 +724,8 @@ impl Rendering {
                 ..SubscreenTimes::default()
             },
             progress: Progress::new(total, config.render.progress),
+            copy,
+            resuming: Vec::new(),
             f,
         }
     }
@@ -650,7 +742,7 @@ impl Rendering {
             match next(cluster, cancel).await? {
                 Some(Delivery::Frame { frame, via }) => self.on_frame(frame, via, faults)?,
                 Some(Delivery::Lost { peer, reason, .. }) => {
-                    self.on_lost(cluster, peer, &reason, faults)?;
+                    self.on_lost(cluster, peer, &reason, faults).await?;
                 }
                 _ => {}
             }
@@ -676,18 +768,61 @@ impl Rendering {
         }
     }
 
-    /// The connection to `peer` ended: a render node's work goes to others.
-    fn on_lost(
+    /// The connection to `peer` ended: a render node's work goes to others; a fork node's
+    /// share of the scene is rebuilt on the live cards, and the work of the render nodes it
+    /// served is queued again (their rows on the way went with it), while they go on,
+    /// served by another fork node.
+    async fn on_lost(
         &mut self,
         cluster: &Cluster,
         peer: NodeId,
         reason: &str,
         faults: &mut Faults,
     ) -> Result<(), ClusterRenderError> {
-        if faults.on_lost(cluster, peer, reason)? {
-            self.requests.retain(|r, _| r.node != peer);
-            let actions = self.scheduler.node_lost(peer);
-            self.perform(actions, None, faults);
+        let detected = Instant::now();
+        match faults.on_lost(cluster, peer, reason, true)? {
+            None => {}
+            Some(Loss::Render) => {
+                self.requests.retain(|r, _| r.node != peer);
+                let actions = self.scheduler.node_lost(peer);
+                self.perform(actions, None, faults);
+            }
+            Some(Loss::Fork { served }) => {
+                let moved = match self.copy.rebuild(&self.f, peer).await {
+                    Ok(moved) => moved,
+                    Err(e) => {
+                        let lost = faults.lost.pop().map(Box::new);
+                        return Err(match lost {
+                            Some(node) => ClusterRenderError::ForkNodeLost {
+                                node,
+                                why: format!("its share of the scene could not be rebuilt: {e}"),
+                            },
+                            None => ClusterRenderError::FabricStopped,
+                        });
+                    }
+                };
+                let mut reassigned = 0;
+                self.resuming.push((peer, served.clone(), detected));
+                for r in served {
+                    let actions = self.scheduler.take_back(r);
+                    for a in &actions {
+                        if let Action::Reassigned { subscreens, .. } = a {
+                            reassigned += subscreens;
+                        }
+                    }
+                    self.perform(actions, None, faults);
+                }
+                let recovered_after_s = detected.elapsed().as_secs_f64();
+                if let Some(l) = faults.lost.iter_mut().find(|l| l.node == peer) {
+                    l.items_moved = moved;
+                    l.subscreens_reassigned = reassigned;
+                    l.recovered_after_s = recovered_after_s;
+                }
+                tracing::info!(
+                    "fork node {peer}'s share ({moved} chunks and tiles) rebuilt on the live fork nodes and {reassigned} subscreens queued again; rendering goes on {recovered_after_s:.2} s after the loss"
+                );
+                event_recovered(peer);
+            }
         }
         Ok(())
     }
@@ -767,7 +902,10 @@ impl Rendering {
                         stored = true;
                     }
                 }
-                Action::FirstPixels { node, subscreen } => event_first_pixels(node, subscreen),
+                Action::FirstPixels { node, subscreen } => {
+                    event_first_pixels(node, subscreen);
+                    self.resumed(node, faults);
+                }
                 Action::Reassigned { node, subscreens } => {
                     if let Some(l) = faults.lost.iter_mut().find(|l| l.node == node) {
                         l.subscreens_reassigned = subscreens;
@@ -788,6 +926,24 @@ impl Rendering {
             self.progress
                 .update(total - self.scheduler.missing(), total);
         }
+    }
+
+    /// Pixels of `node` arrived: if it was served by a lost fork node, they came through
+    /// another, and the lost card renders again.
+    fn resumed(&mut self, node: NodeId, faults: &mut Faults) {
+        self.resuming.retain(|(fork, served, detected)| {
+            if !served.contains(&node) {
+                return true;
+            }
+            let after = detected.elapsed().as_secs_f64();
+            if let Some(l) = faults.lost.iter_mut().find(|l| l.node == *fork) {
+                l.served_rows_after_s = Some(after);
+            }
+            tracing::info!(
+                "render node {node}, served by lost fork node {fork}, renders again: its pixels arrive {after:.2} s after the loss"
+            );
+            false
+        });
     }
 
     fn answer(&mut self, request: Request, answer: Answer) {
@@ -1077,6 +1233,11 @@ fn cluster_stats(
 /// The log target of machine-readable events (`MAGG_EVENT ...` lines at debug level), which
 /// tests and scripts wait for instead of guessing with sleeps: `--log info,magg::event=debug`.
 pub const EVENT_TARGET: &str = "magg::event";
+
+/// A lost fork node's share of the scene is rebuilt and its render nodes' work queued again.
+fn event_recovered(node: NodeId) {
+    tracing::debug!(target: EVENT_TARGET, "MAGG_EVENT recovered node={node}");
+}
 
 /// A node's first pixels of a subscreen reached the frame buffer: it is rendering.
 fn event_first_pixels(node: NodeId, subscreen: u32) {

@@ -7,6 +7,7 @@ pub mod cluster;
 pub mod distributed;
 pub mod inprocess;
 pub mod progress;
+mod recovery;
 pub mod scene_source;
 pub mod schedule;
 pub mod spawn;

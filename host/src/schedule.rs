@@ -282,6 +282,9 @@ pub struct Scheduler {
     /// Each node's last subscreen, for `Order::Local`.
     last_rect: HashMap<NodeId, Rect>,
     lost: HashSet<NodeId>,
+    /// Whether rows may have been lost on their way (a node or a fork node was lost): the
+    /// sweep for rows that never arrived runs from then on.
+    rows_may_be_lost: bool,
     subscreens: Vec<Subscreen>,
     planned: u32,
     split: u32,
@@ -343,6 +346,7 @@ impl Scheduler {
             last_rect: HashMap::new(),
             render_nodes: plan.render_nodes.into_iter().collect(),
             lost: HashSet::new(),
+            rows_may_be_lost: false,
             subscreens,
             planned,
             split: 0,
@@ -490,9 +494,11 @@ impl Scheduler {
 
     /// Queues again, first in line, the rows still missing of every subscreen `node` was
     /// given, and hands them out. Losing the node is one reason; rows on their way lost
-    /// while the node goes on (its fork node lost and the node re-homed to another) would be
-    /// another, which is why the node is not declared lost here.
+    /// while the node goes on (its fork node lost and the node re-homed to another) are
+    /// another, which is why the node is not declared lost here. Either way, rows may have
+    /// been lost on their way, so the sweep of `tick` runs from now on.
     pub fn take_back(&mut self, node: NodeId) -> Vec<Action> {
+        self.rows_may_be_lost = true;
         let mut subscreens = 0;
         for id in 0..self.subscreens.len() {
             let s = &self.subscreens[id];
@@ -521,7 +527,7 @@ impl Scheduler {
         // Once a node was lost, rows may have been lost with it on their way to the frame
         // buffer (or a give-back with its answer): finished subscreens still missing rows
         // are rendered again.
-        if !self.lost.is_empty() && now.saturating_duration_since(self.last_sweep) > LOST_ROWS_SWEEP
+        if self.rows_may_be_lost && now.saturating_duration_since(self.last_sweep) > LOST_ROWS_SWEEP
         {
             self.last_sweep = now;
             for id in 0..self.subscreens.len() {
@@ -944,6 +950,35 @@ mod tests {
         assert_eq!(
             s.request(ask(A, 2), None, clock.at(1)),
             vec![given(ask(A, 2), 0, rect(0, 1, 2, 1))]
+        );
+    }
+
+    #[test]
+    fn once_work_is_taken_back_rows_that_never_came_are_rendered_again() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
+        s.request(ask(A, 1), None, clock.at(0));
+        s.request(ask(B, 1), None, clock.at(0));
+        rows(&mut s, 0, 2, 0..2);
+        // B says it finished, but a row went to a fork node that is lost.
+        rows(&mut s, 1, 2, 2..3);
+        s.request(ask(B, 2), Some(1), clock.at(1000));
+        assert_eq!(s.tick(clock.at(5000)), vec![], "nothing suspected yet");
+        // A's fork node is lost: A's work is taken back (none is missing), and from now
+        // on finished subscreens missing rows are suspect.
+        assert_eq!(
+            s.take_back(A),
+            vec![Action::Reassigned {
+                node: A,
+                subscreens: 0
+            }]
+        );
+        assert_eq!(
+            s.tick(clock.at(5001)),
+            vec![
+                Action::RowsNeverArrived { subscreen: 1 },
+                given(ask(B, 2), 1, rect(0, 3, 2, 1)),
+            ]
         );
     }
 

@@ -150,6 +150,8 @@ pub struct CacheStats {
 pub struct Source {
     pub fabric: Fabric,
     pub runtime: tokio::runtime::Handle,
+    /// This card's fork node; while it is lost, [`Fabric::serving_fork`] names the one
+    /// standing in.
     pub fork: NodeId,
     pub chunk_owner: Vec<NodeId>,
     pub tile_owner: Vec<NodeId>,
@@ -406,16 +408,7 @@ impl DemandCache {
             transfer: src.via,
             owner,
         };
-        let fabric = src.fabric.clone();
-        let fork = src.fork;
-        let reply = src
-            .runtime
-            .block_on(async move {
-                fabric
-                    .request(fork, &request, Box::new([]), Route::Mesh, FETCH_TIMEOUT)
-                    .await
-            })
-            .map_err(|e| DataError::Fetch(e.to_string()))?;
+        let reply = ask_fork(src, &request)?;
         self.stats
             .wait_ns
             .fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -456,16 +449,7 @@ impl DemandCache {
             return Ok(None);
         }
         if src.fabric.model().links_delayed() {
-            let request = Message::SharedRead { id, owner };
-            let fabric = src.fabric.clone();
-            let fork = src.fork;
-            src.runtime
-                .block_on(async move {
-                    fabric
-                        .request(fork, &request, Box::new([]), Route::Mesh, FETCH_TIMEOUT)
-                        .await
-                })
-                .map_err(|e| DataError::Fetch(e.to_string()))?;
+            ask_fork(src, &Message::SharedRead { id, owner })?;
         }
         Ok(segment
             .place(id, Part::Words)
@@ -474,6 +458,39 @@ impl DemandCache {
                 segment,
                 words,
             }))
+    }
+}
+
+/// How long a request that failed while its fork node is not (yet) known lost waits before
+/// it is sent again: the host's word of the loss is on its way.
+const RETRY_AFTER: Duration = Duration::from_millis(100);
+
+/// Asks the fork node serving this node and waits for its answer. When that fork node is
+/// lost meanwhile (the host declares it dead, which ends the request at once), the fork node
+/// standing in for it is asked instead: the items are the same wherever they are held.
+fn ask_fork(src: &Source, request: &Message) -> Result<protocol::Frame, DataError> {
+    let me = src.fabric.me();
+    let deadline = Instant::now() + FETCH_TIMEOUT;
+    loop {
+        let fork = src.fabric.serving_fork(me).unwrap_or(src.fork);
+        let fabric = src.fabric.clone();
+        let message = request.clone();
+        let left = deadline.saturating_duration_since(Instant::now());
+        let answer = src.runtime.block_on(async move {
+            fabric
+                .request(fork, &message, Box::new([]), Route::Mesh, left)
+                .await
+        });
+        match answer {
+            Ok(frame) => return Ok(frame),
+            Err(e) if Instant::now() >= deadline => return Err(DataError::Fetch(e.to_string())),
+            Err(e) => {
+                if src.fabric.serving_fork(me) == Some(fork) {
+                    tracing::debug!("render node {me}: asking fork node {fork} failed: {e}");
+                    std::thread::sleep(RETRY_AFTER);
+                }
+            }
+        }
     }
 }
 

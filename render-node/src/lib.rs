@@ -1,5 +1,6 @@
 //! The render node role (the paper's NP): renders the subscreens the host hands it, fetching
-//! the shape and texture data its rays need from its fork node into a bounded cache
+//! the shape and texture data its rays need from its fork node (or, once that one is lost,
+//! the one [`fabric::Fabric::serving_fork`] names) into a bounded cache
 //! ([`cache`]), on rendering threads of its own ([`worker`]), while this runtime relays other
 //! nodes' packets through the mesh.
 //!
@@ -64,7 +65,7 @@ impl RoleHandler for RenderNode {
                 name,
                 nonce,
                 bytes,
-            } if via == Via::Direct(fabric.topology().fork_of(fabric.me()).unwrap_or(0)) => {
+            } if via == Via::Direct(fabric.serving_fork(fabric.me()).unwrap_or(0)) => {
                 match self.render.segments.add(card, &name, nonce, bytes) {
                     Ok(()) => tracing::debug!(
                         "render node {}: reads card {card}'s memory through shared memory",

@@ -226,7 +226,12 @@ impl Worker {
                 x: rect.x,
                 width: rect.width,
             };
-            self.fabric.send(self.fork, &msg, words, 0)?;
+            // To the fork node serving this node now: another card's, once its own is lost.
+            let fork = self
+                .fabric
+                .serving_fork(self.fabric.me())
+                .unwrap_or(self.fork);
+            self.fabric.send(fork, &msg, words, 0)?;
             self.stats.rows.fetch_add(1, Ordering::Relaxed);
             self.stats
                 .pixels

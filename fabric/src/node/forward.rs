@@ -222,6 +222,19 @@ impl Fabric {
         self.inner.routes.read().expect("routes lock").is_alive(id)
     }
 
+    /// The fork node serving render node `id` given the losses this node knows of
+    /// ([`crate::Topology::serving_fork`]).
+    pub fn serving_fork(&self, id: NodeId) -> Option<NodeId> {
+        let routes = self.inner.routes.read().expect("routes lock");
+        self.inner.topology.serving_fork(id, routes.alive())
+    }
+
+    /// The G-bus arbiter given the losses this node knows of: the first live fork node.
+    pub fn first_live_fork(&self) -> Option<NodeId> {
+        let routes = self.inner.routes.read().expect("routes lock");
+        self.inner.topology.first_live_fork(routes.alive())
+    }
+
     /// Declares `node` dead: routes go around it from now on, and requests waiting for
     /// answers are sent again in case they or their answers were lost in it. Returns false
     /// if it was already known dead.
@@ -235,6 +248,7 @@ impl Fabric {
             alive[node as usize] = false;
             *routes = Routes::compute(&self.inner.topology, &alive);
         }
+        self.abandon_requests_to(node);
         self.resend_pending();
         true
     }

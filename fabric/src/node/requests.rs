@@ -1,7 +1,9 @@
 //! Requests that wait for their answer. A request carries a tag; the answer comes back
 //! with the same tag and the reply flag, and goes to the waiting request instead of the
 //! role code. Requests through the mesh keep a copy, sent again when routes change, because
-//! a node declared dead may have taken the request or its answer with it.
+//! a node declared dead may have taken the request or its answer with it. A request to the
+//! node declared dead itself ends at once ([`RequestError::Closed`]): its asker can turn to
+//! whoever stands in for that node instead of waiting out its timeout.
 
 use std::{sync::atomic::Ordering, time::Duration};
 
@@ -20,6 +22,8 @@ const RESEND_AFTER: [Duration; 3] = [
 
 /// A request waiting for its answer.
 pub(super) struct Pending {
+    /// Whom it asked.
+    to: NodeId,
     answer: tokio::sync::oneshot::Sender<Frame>,
     /// A copy to send again when routes change (mesh requests only: a direct connection
     /// has no route to change).
@@ -42,11 +46,14 @@ impl Fabric {
         let (tx, rx) = tokio::sync::oneshot::channel();
         let frame = Frame::new(self.inner.me, to, message, data).with_tag(tag);
         let resend = (route == Route::Mesh).then(|| frame.clone());
-        self.inner
-            .pending
-            .lock()
-            .expect("lock")
-            .insert(tag, Pending { answer: tx, resend });
+        self.inner.pending.lock().expect("lock").insert(
+            tag,
+            Pending {
+                to,
+                answer: tx,
+                resend,
+            },
+        );
         let sent = match route {
             Route::Mesh => self.send_frame(frame, 0),
             Route::Direct => self.send_direct_frame(to, frame),
@@ -90,6 +97,16 @@ impl Fabric {
                 self.send_direct_frame(to, frame)
             }
         }
+    }
+
+    /// Ends every request waiting for an answer from `node`, declared dead: dropping its
+    /// sender tells the asker the connection closed.
+    pub(super) fn abandon_requests_to(&self, node: NodeId) {
+        self.inner
+            .pending
+            .lock()
+            .expect("lock")
+            .retain(|_, p| p.to != node);
     }
 
     /// Sends every mesh request still waiting for its answer again, now and a little later
