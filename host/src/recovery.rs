@@ -113,7 +113,7 @@ impl HostCopy {
                 .iter()
                 .filter(|&&t| self.tile_owner[t as usize] == fork)
             {
-                let words = data.tiles[t as usize].texels.clone();
+                let words = data.tiles[t as usize].texels[..].into();
                 let _ = f.send_direct(
                     fork,
                     &Message::Hold {
