@@ -279,10 +279,10 @@ impl Segment {
         Ok(Segment { map, index })
     }
 
-    /// A copy of item `id`'s words, if the segment holds it. The caller validates them.
-    pub fn read(&self, id: DataId) -> Option<Box<[u32]>> {
+    /// Item `id`'s words where they lie, if the segment holds it. The caller validates them.
+    pub fn read(&self, id: DataId) -> Option<&[u32]> {
         let (start, end) = self.place(id, Part::Words)?;
-        Some(self.words()[start..end].into())
+        Some(&self.words()[start..end])
     }
 
     /// Where the segment holds `part` of item `id`: words `start..end` of [`Segment::words`].
@@ -294,11 +294,6 @@ impl Segment {
     /// The whole mapping as words (a mapping starts on a page, so it is aligned).
     pub fn words(&self) -> &[u32] {
         bytemuck::cast_slice(&self.map[..])
-    }
-
-    /// Whether the segment holds item `id`'s words.
-    pub fn holds(&self, id: DataId) -> bool {
-        self.index.contains_key(&(id, Part::Words))
     }
 
     pub fn len(&self) -> usize {
@@ -411,8 +406,8 @@ mod tests {
         let p = publish(&d.0);
         let s = Segment::open(&d.0, &p.name, p.nonce, p.bytes).unwrap();
         assert_eq!(s.len(), 3);
-        assert_eq!(&*s.read(DataId::Chunk(4)).unwrap(), &[1, 2, 3]);
-        assert_eq!(&*s.read(DataId::Tile(9)).unwrap(), &[7; 5]);
+        assert_eq!(s.read(DataId::Chunk(4)).unwrap(), &[1, 2, 3]);
+        assert_eq!(s.read(DataId::Tile(9)).unwrap(), &[7; 5]);
         assert!(s.read(DataId::Chunk(9)).is_none());
         let (start, end) = s.place(DataId::Chunk(4), Part::Walk).unwrap();
         assert_eq!(&s.words()[start..end], &[8; 32]);
@@ -438,7 +433,7 @@ mod tests {
         drop(p);
         assert!(!path.exists());
         assert_eq!(
-            &*s.read(DataId::Chunk(4)).unwrap(),
+            s.read(DataId::Chunk(4)).unwrap(),
             &[1, 2, 3],
             "still mapped"
         );

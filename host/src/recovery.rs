@@ -92,50 +92,30 @@ impl HostCopy {
             tile_owner: self.tile_owner.clone(),
         };
         for &fork in &live {
+            let hold = |id: DataId, words: Box<[u32]>| {
+                let _ = f.send_direct(fork, &Message::Hold { id }, words, 0, 0);
+            };
             // The items first, then the table that names this card as their holder, on one
             // connection: a fork node never reads the table before the items are in.
             for &c in chunks
                 .iter()
                 .filter(|&&c| self.chunk_owner[c as usize] == fork)
             {
-                let words = data.chunks[c as usize].words().into();
-                let _ = f.send_direct(
-                    fork,
-                    &Message::Hold {
-                        id: DataId::Chunk(c),
-                    },
-                    words,
-                    0,
-                    0,
-                );
+                hold(DataId::Chunk(c), data.chunks[c as usize].words().into());
             }
             for &t in tiles
                 .iter()
                 .filter(|&&t| self.tile_owner[t as usize] == fork)
             {
-                let words = data.tiles[t as usize].texels[..].into();
-                let _ = f.send_direct(
-                    fork,
-                    &Message::Hold {
-                        id: DataId::Tile(t),
-                    },
-                    words,
-                    0,
-                    0,
-                );
+                hold(DataId::Tile(t), data.tiles[t as usize].texels[..].into());
             }
             let _ = f.send_direct(fork, &table, header_words.clone(), 0, 0);
             let count = self.chunk_owner.iter().filter(|&&o| o == fork).count()
                 + self.tile_owner.iter().filter(|&&o| o == fork).count();
-            let _ = f.send_direct(
-                fork,
-                &Message::HoldDone {
-                    count: count as u32,
-                },
-                Box::new([]),
-                0,
-                0,
-            );
+            let done = Message::HoldDone {
+                count: count as u32,
+            };
+            let _ = f.send_direct(fork, &done, Box::new([]), 0, 0);
         }
         Ok((chunks.len() + tiles.len()) as u32)
     }

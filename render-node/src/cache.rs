@@ -59,15 +59,25 @@ impl Fetched {
         }
     }
 
-    /// The words, wherever they lie.
-    fn into_region(self) -> Result<Region<u32>, DataError> {
+    /// The words wherever they lie, and where a chunk's walking form lies if the mapping
+    /// holds one.
+    fn into_parts(self) -> Result<(Region<u32>, Option<WalkPlace>), DataError> {
         match self {
-            Fetched::Words(w) => Ok(Region::own(w)),
-            Fetched::InPlace { segment, words, .. } => {
+            Fetched::Words(w) => Ok((Region::own(w), None)),
+            Fetched::InPlace {
+                segment,
+                words,
+                walk,
+            } => {
                 let block: Arc<dyn Block> = segment;
-                Region::in_block(block, words.0, words.1).ok_or_else(|| {
-                    DataError::Corrupt("an item misplaced in its card's segment".into())
-                })
+                let region =
+                    Region::in_block(block.clone(), words.0, words.1).ok_or_else(|| {
+                        DataError::Corrupt("an item misplaced in its card's segment".into())
+                    })?;
+                Ok((
+                    region,
+                    walk.map(|(start, end)| WalkPlace { block, start, end }),
+                ))
             }
         }
     }
@@ -445,19 +455,17 @@ impl DemandCache {
         let Some(segment) = src.shared.as_ref().and_then(|s| s.get(owner)) else {
             return Ok(None);
         };
-        if !segment.holds(id) {
+        let Some(words) = segment.place(id, Part::Words) else {
             return Ok(None);
-        }
+        };
         if src.fabric.model().links_delayed() {
             ask_fork(src, &Message::SharedRead { id, owner })?;
         }
-        Ok(segment
-            .place(id, Part::Words)
-            .map(|words| Fetched::InPlace {
-                walk: segment.place(id, Part::Walk),
-                segment,
-                words,
-            }))
+        Ok(Some(Fetched::InPlace {
+            walk: segment.place(id, Part::Walk),
+            segment,
+            words,
+        }))
     }
 }
 
@@ -569,22 +577,9 @@ impl Retire for Tile {
 }
 
 fn validate_chunk(rules: &ChunkRules, id: u32, fetched: Fetched) -> Result<Chunk, DataError> {
-    let corrupt = |e: &dyn std::fmt::Display| DataError::Corrupt(format!("chunk {id}: {e}"));
-    let chunk = match fetched {
-        Fetched::Words(words) => Chunk::from_words(words),
-        Fetched::InPlace {
-            segment,
-            words,
-            walk,
-        } => {
-            let block: Arc<dyn Block> = segment;
-            let region = Region::in_block(block.clone(), words.0, words.1)
-                .ok_or_else(|| corrupt(&"misplaced in its card's segment"))?;
-            let walk = walk.map(|(start, end)| WalkPlace { block, start, end });
-            Chunk::from_region(region, walk)
-        }
-    }
-    .map_err(|e| corrupt(&e))?;
+    let (words, walk) = fetched.into_parts()?;
+    let chunk = Chunk::from_region(words, walk)
+        .map_err(|e| DataError::Corrupt(format!("chunk {id}: {e}")))?;
     rules
         .check(id, &chunk)
         .map_err(|e| DataError::Corrupt(e.to_string()))?;
@@ -711,7 +706,7 @@ impl SceneData for Reader<'_> {
         }
         let fetched = self.cache.fetch(DataId::Tile(id))?;
         self.fetched(fetched.word_count());
-        let tile = Tile::from_region(fetched.into_region()?)?;
+        let tile = Tile::from_region(fetched.into_parts()?.0)?;
         let bytes = tile.as_bytes().len() as u64;
         let p = self
             .cache

@@ -111,7 +111,7 @@ mod tests {
         assert!(s.get(2).is_none(), "refused: this card stays on TCP");
         s.add_in(&dir, 2, &p.name, p.nonce, p.bytes).unwrap();
         assert_eq!(s.count(), 1);
-        assert_eq!(&*s.get(2).unwrap().read(DataId::Tile(0)).unwrap(), &words);
+        assert_eq!(s.get(2).unwrap().read(DataId::Tile(0)).unwrap(), &words);
         drop(p);
         let _ = std::fs::remove_dir_all(&dir);
     }
