@@ -169,6 +169,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             &self.scene.tlas.accel().nodes,
             &q,
             &mut tmax,
+            |_| {},
             |chunk_id, tmax| {
                 let chunk = match self.data.chunk(chunk_id) {
                     Ok(c) => c,
@@ -226,6 +227,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             &self.scene.tlas.accel().nodes,
             &q,
             &mut tmax,
+            |_| {},
             |chunk_id, tmax| {
                 let chunk = match self.data.chunk(chunk_id) {
                     Ok(c) => c,
