@@ -9,7 +9,7 @@
 //! [`crate::schedule`], which does none, so that those rules can be tested without processes.
 
 use std::{
-    collections::HashMap,
+    collections::{HashMap, HashSet},
     sync::atomic::{AtomicBool, Ordering},
     time::{Duration, Instant},
 };
@@ -418,8 +418,14 @@ async fn drive(
         return Err(e);
     }
     let render_s = t1.elapsed().as_secs_f64();
-    frame.finish(&mut faults);
-    drain_requests(cluster, &f).await;
+    let answered = frame.finish(&mut faults);
+    let owed = f
+        .topology()
+        .render_nodes()
+        .into_iter()
+        .filter(|&n| f.is_alive(n) && !answered.contains(&n))
+        .collect();
+    drain_requests(cluster, &f, owed).await;
 
     let t2 = Instant::now();
     scene_io::write_image(&rc.output, &frame.kept.image).map_err(RenderError::Output)?;
@@ -982,9 +988,18 @@ impl Rendering {
     }
 
     /// The frame is complete: everyone still asking is told there is nothing more.
-    fn finish(&mut self, faults: &mut Faults) {
+    /// Answers the requests held until the end; returns the render nodes answered.
+    fn finish(&mut self, faults: &mut Faults) -> Vec<NodeId> {
         let actions = self.scheduler.finish();
+        let answered = actions
+            .iter()
+            .filter_map(|a| match a {
+                Action::Answer { request, .. } => Some(request.node),
+                _ => None,
+            })
+            .collect();
         self.perform(actions, None, faults);
+        answered
     }
 }
 
@@ -1244,15 +1259,38 @@ fn event_first_pixels(node: NodeId, subscreen: u32) {
     tracing::debug!(target: EVENT_TARGET, "MAGG_EVENT pixels node={node} subscreen={subscreen}");
 }
 
-/// Answers the last requests for work, which arrive as render nodes finish.
-async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric) {
+/// Answers the last requests for work, which arrive as render nodes finish: one from each
+/// render node in `owed` (live, and not answered when the image was complete). Each node
+/// asks once its last subscreen's figures are recorded, so the figures collected next are
+/// whole; waiting for exactly those requests, instead of a fixed time, keeps the host from
+/// idling after the last node has asked (a fixed 300 ms was most of a small render's
+/// overhead). A node that never asks (its rendering thread failed) is waited for 300 ms.
+async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric, mut owed: HashSet<NodeId>) {
     let until = Instant::now() + Duration::from_millis(300);
-    while Instant::now() < until {
-        if let Ok(Some(Delivery::Frame { frame, .. })) =
-            tokio::time::timeout(Duration::from_millis(50), cluster.formed.inbox.recv()).await
-            && let Ok(Message::SubscreenRequest { .. }) = frame.message()
-        {
-            refuse_request(f, &frame);
+    while !owed.is_empty() {
+        let left = until.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            tracing::debug!(
+                "{} render nodes did not ask for work again after the image was complete",
+                owed.len()
+            );
+            return;
+        }
+        match tokio::time::timeout(left, cluster.formed.inbox.recv()).await {
+            Ok(Some(Delivery::Frame { frame, .. })) => {
+                if let Ok(Message::SubscreenRequest { .. }) = frame.message() {
+                    owed.remove(&frame.header.sender);
+                    refuse_request(f, &frame);
+                }
+            }
+            Ok(Some(Delivery::Lost { peer, .. })) => {
+                // Gone after the image was complete: nothing of it is needed but its figures,
+                // which it can no longer give.
+                f.mark_dead(peer);
+                owed.remove(&peer);
+            }
+            Ok(None) | Err(_) => return,
+            Ok(Some(_)) => {}
         }
     }
 }

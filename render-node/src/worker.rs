@@ -168,23 +168,38 @@ impl Worker {
             self.stats
                 .peak_private
                 .fetch_max(fabric::private_rss_bytes(), Ordering::Relaxed);
+            // The node's totals include this subscreen before it asks for the next one: the
+            // host collects figures as soon as the last request has come in.
+            self.add_totals(&before, &trace_stats);
             finished = Some(id);
         }
-        self.stats
-            .rays
-            .fetch_add(trace_stats.rays(), Ordering::Relaxed);
-        self.stats
-            .samples
-            .fetch_add(trace_stats.samples, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Adds the rays and samples traced between `before` and `after` to the node's totals.
+    fn add_totals(&self, before: &TraceStats, after: &TraceStats) {
         for (counter, n) in [
-            (&self.stats.camera_rays, trace_stats.camera_rays),
-            (&self.stats.secondary_rays, trace_stats.secondary_rays),
-            (&self.stats.shadow_rays, trace_stats.shadow_rays),
-            (&self.stats.bad_samples, trace_stats.bad_samples),
+            (&self.stats.rays, after.rays() - before.rays()),
+            (&self.stats.samples, after.samples - before.samples),
+            (
+                &self.stats.camera_rays,
+                after.camera_rays - before.camera_rays,
+            ),
+            (
+                &self.stats.secondary_rays,
+                after.secondary_rays - before.secondary_rays,
+            ),
+            (
+                &self.stats.shadow_rays,
+                after.shadow_rays - before.shadow_rays,
+            ),
+            (
+                &self.stats.bad_samples,
+                after.bad_samples - before.bad_samples,
+            ),
         ] {
             counter.fetch_add(n, Ordering::Relaxed);
         }
-        Ok(())
     }
 
     fn render_subscreen(
