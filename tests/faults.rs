@@ -258,10 +258,11 @@ fn long_render_fetching() -> Vec<String> {
 /// Kills fork node `fork` of a grid:2x2x2 cluster (fork nodes 1 and 2; render nodes 3, 4, 7
 /// and 8 on card 0, 5, 6, 9 and 10 on card 1) once render node `watch` of its card renders,
 /// and checks that the render finishes with the bytes of one process.
-fn fork_node_killed_mid_render(name: &str, fork: u32, watch: u32) {
+fn fork_node_killed_mid_render(name: &str, fork: u32, watch: u32, extra: &[&str]) {
     let _serial = serial();
     let dir = scratch(name);
-    let args = long_render_fetching();
+    let mut args = long_render_fetching();
+    args.extend(extra.iter().map(|a| a.to_string()));
     let mut c = start_cluster(&dir, "grid:2x2x2", &args);
     c.wait_for_pixels_from(Some(watch));
     let fork_pid = c.node(fork).pid();
@@ -299,14 +300,21 @@ fn fork_node_killed_mid_render(name: &str, fork: u32, watch: u32) {
 
 #[test]
 fn a_killed_fork_node_has_its_share_rebuilt_and_the_image_is_unchanged() {
-    fork_node_killed_mid_render("fault-fork-node", 2, 5);
+    fork_node_killed_mid_render("fault-fork-node", 2, 5, &[]);
+}
+
+#[test]
+fn a_killed_fork_node_in_batch_mode_has_its_share_rebuilt_and_the_image_is_unchanged() {
+    // Batch transfer: every render node holds the whole scene before it renders, so what the
+    // loss costs is the card's routes and the rows on their way through it.
+    fork_node_killed_mid_render("fault-fork-node-batch", 2, 5, &["--transfer", "batch"]);
 }
 
 #[test]
 fn a_killed_first_fork_node_is_replaced_and_the_image_is_unchanged() {
     // The first fork node prepared the scene, arbitrates the G-buses and is the host's
     // only mesh link.
-    fork_node_killed_mid_render("fault-first-fork-node", 1, 3);
+    fork_node_killed_mid_render("fault-first-fork-node", 1, 3, &[]);
 }
 
 #[test]
