@@ -527,7 +527,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
     leaf_lines: impl Fn(u32),
     mut leaf: impl FnMut(u32, &mut f32) -> Visit,
 ) {
-    if nodes.is_empty() {
+    if nodes.is_empty() || !q.is_finite() {
         return;
     }
     let mut stack = Stack::new();
@@ -862,7 +862,7 @@ impl Bvh8 {
         // through the top-level box of the chunk, which holds the leaf's: its own tree would
         // only test that box again. Boxes only prune, so skipping one changes no hit.
         if let [b] = &self.leaves[..] {
-            return closest_in_leaf(q, b, chunk, best, &mut accept);
+            return q.is_finite() && closest_in_leaf(q, b, chunk, best, &mut accept);
         }
         let mut found = false;
         let mut tmax = best.t;
@@ -889,7 +889,9 @@ impl Bvh8 {
     pub fn each_hit<F: FnMut(u32, TriHit) -> Visit>(&self, q: &RayQuery, tmax: f32, mut f: F) {
         // One leaf: straight to it, as in `closest`.
         if let [b] = &self.leaves[..] {
-            hits_in_leaf(q, b, tmax, &mut f);
+            if q.is_finite() {
+                hits_in_leaf(q, b, tmax, &mut f);
+            }
             return;
         }
         let mut t = tmax;
@@ -1167,6 +1169,61 @@ mod tests {
             hits += usize::from(got.is_some());
         }
         assert!(hits > 200, "the test should meet many hits, met {hits}");
+    }
+
+    /// Rays that are not finite numbers, or whose box constants overflow, meet nothing, and
+    /// the walk over a tree with empty child slots ends. (The fuzzer found a chunk whose
+    /// bounds' centre overflowed: the ray from there made NaN box distances, and the build
+    /// without AVX2, whose min and max ignore NaN, entered an empty slot, which points at the
+    /// root, forever.) Each ray runs on a thread that must finish within ten seconds.
+    #[test]
+    fn rays_that_are_not_finite_meet_nothing_and_the_walk_ends() {
+        let m = grid(12, 1.0);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = std::sync::Arc::new(build_chunk(&m, &all, 0, 0).unwrap());
+        assert!(
+            chunk.accel().nodes.len() > 1,
+            "the tree needs inner nodes with empty slots"
+        );
+        let (nan, inf, big) = (f32::NAN, f32::INFINITY, f32::MAX);
+        let rays = [
+            (Vec3::new(nan, 5.0, 5.0), Vec3::new(0.1, 0.2, -1.0)),
+            (Vec3::new(5.0, 5.0, inf), Vec3::new(0.1, 0.2, -1.0)),
+            (Vec3::new(5.0, 5.0, 5.0), Vec3::new(nan, 0.0, -1.0)),
+            (Vec3::new(5.0, 5.0, 5.0), Vec3::new(0.0, -inf, -1.0)),
+            // Finite, but origin / dir overflows on every axis.
+            (Vec3::new(big, -big, big), Vec3::new(1e-30, 1e-30, -1.0)),
+            (
+                Vec3::new(-big, 6.0, big * 0.5),
+                Vec3::new(1.0, 1e-25, -1e-25),
+            ),
+        ];
+        for (o, d) in rays {
+            let c = chunk.clone();
+            let (tx, rx) = std::sync::mpsc::channel();
+            std::thread::spawn(move || {
+                let q = RayQuery::new(&Ray::infinite(o, d));
+                let mut tmax = f32::INFINITY;
+                let closest = c.intersect(&q, &mut tmax).map(|(tri, _)| tri);
+                let mut any = 0;
+                c.for_each_hit(&q, f32::INFINITY, |_, _| {
+                    any += 1;
+                    Visit::Continue
+                });
+                let _ = tx.send((q.is_finite(), closest, any));
+            });
+            let got = rx
+                .recv_timeout(std::time::Duration::from_secs(10))
+                .unwrap_or_else(|_| panic!("the walk did not end for origin {o}, dir {d}"));
+            assert_eq!(got, (false, None, 0), "origin {o}, dir {d}");
+        }
+        // An ordinary ray is finite and still hits.
+        let q = RayQuery::new(&Ray::infinite(
+            Vec3::new(5.5, 5.5, 5.0),
+            Vec3::new(0.01, 0.02, -1.0).normalize(),
+        ));
+        assert!(q.is_finite());
+        assert!(chunk.intersect(&q, &mut f32::INFINITY.clone()).is_some());
     }
 
     #[test]

@@ -97,6 +97,11 @@ pub struct RayQuery {
     /// bytes (pre-scaled, see [`PLANE_BYTES`]).
     near_plane: [usize; 3],
     far_plane: [usize; 3],
+    /// Whether the ray and its box constants are finite numbers. A ray that is not (a NaN or
+    /// infinite origin or direction, or an origin so far out that `origin / dir` overflows)
+    /// meets nothing: its box distances could be NaN, and NaN compares so that an empty
+    /// child slot, which no finite ray enters, might be entered, and the walk might loop.
+    finite: bool,
 }
 
 impl RayQuery {
@@ -125,6 +130,9 @@ impl RayQuery {
         let (near, far) = (-r - slack, -r + slack);
         let signs = inv.cmpge(Vec3A::ZERO).bitmask() as usize & 7;
         let (near_plane, far_plane) = PLANE_OFFSETS[signs];
+        // x * 0 is 0 for a finite x and NaN otherwise: one test for all nine numbers (an
+        // origin that is not finite makes `near` so, unless `dir` is infinite, tested here).
+        let finite = (near * 0.0 + far * 0.0 + d * 0.0).is_finite() && !ray.tmax.is_nan();
         let lanes = |v: Vec3A| [F32x8::splat(v.x), F32x8::splat(v.y), F32x8::splat(v.z)];
         RayQuery {
             origin: ray.origin,
@@ -138,7 +146,14 @@ impl RayQuery {
             axes,
             near_plane,
             far_plane,
+            finite,
         }
+    }
+
+    /// Whether the ray can meet anything (see the field): the walks test this once.
+    #[inline(always)]
+    pub fn is_finite(&self) -> bool {
+        self.finite
     }
 
     /// The watertight test's axes: x, y, then z (the axis of largest |dir|); each below 3.
