@@ -159,11 +159,11 @@ impl Cluster {
                 },
             );
         }
-        // Give the frames a moment to leave before the connections drop.
-        tokio::time::sleep(Duration::from_millis(50)).await;
         match self.local.take() {
             Some(mut l) => {
-                // Nodes wait for the host to hang up before they exit.
+                // Nodes wait for the host to hang up before they exit. Hanging up closes each
+                // connection once the frames queued on it (the Shutdown above) are written,
+                // so nothing needs to wait for them here.
                 self.formed.fabric.hang_up();
                 tokio::task::spawn_blocking(move || {
                     let ok = l.wait(Duration::from_secs(10));
@@ -176,6 +176,9 @@ impl Cluster {
             // Nodes elsewhere see the host's connections end when this process exits, after
             // the host, so that whoever watches (compose) takes the host's exit status.
             None => {
+                // This process exits soon after, ending its writers: give the frames a
+                // moment to leave first.
+                tokio::time::sleep(Duration::from_millis(50)).await;
                 self.formed.fabric.begin_shutdown();
                 true
             }

@@ -119,7 +119,7 @@ impl LocalCluster {
             if Instant::now() > until {
                 return false;
             }
-            std::thread::sleep(Duration::from_millis(20));
+            std::thread::sleep(Duration::from_millis(5));
         }
     }
 
