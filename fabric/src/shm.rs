@@ -17,8 +17,9 @@
 //! nonce's four words, the item count, zero), then one entry of [`ENTRY_WORDS`] per item
 //! (kind, index, offset and length in words as two words each, low first), then the items'
 //! words, each starting on a multiple of [`ITEM_ALIGN_WORDS`] (64 bytes, a cache line, so
-//! that what is read in place is aligned as the reader's types need). Files are named `magg-card-PID-CARD-NONCE`, so a fork node that starts can remove
-//! the segments of fork nodes that died without removing their own (see [`remove_stale`]).
+//! that what is read in place is aligned as the reader's types need). Files are named
+//! `magg-card-PID-CARD-NONCE`, so a fork node that starts can remove the segments of fork
+//! nodes that died without removing their own (see [`remove_stale`]).
 
 use std::{
     collections::HashMap,

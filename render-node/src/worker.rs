@@ -113,7 +113,6 @@ impl Worker {
     pub fn run(&self) -> Result<(), WorkerError> {
         let mut reader = self.cache.reader();
         let touched = Touched::new(self.scene.chunks.len(), self.scene.tile_count as usize);
-        let mut trace_stats = TraceStats::default();
         let mut finished = None;
         loop {
             let t0 = Instant::now();
@@ -150,12 +149,13 @@ impl Worker {
                 .expect("active lock")
                 .insert(id, active.clone());
             let cpu0 = fabric::clock::thread_cpu_time();
-            let before = trace_stats;
+            // This subscreen's counts alone: its record, then the node's totals.
+            let mut trace_stats = TraceStats::default();
             let result =
                 self.render_subscreen(&mut reader, &touched, id, &active, &mut trace_stats);
             self.active.lock().expect("active lock").remove(&id);
             result.map_err(|source| WorkerError::Render { id, source })?;
-            let record = record(id, rect, &before, &trace_stats, &reader, &touched, cpu0);
+            let record = record(id, rect, &trace_stats, &reader, &touched, cpu0);
             self.stats
                 .records
                 .lock()
@@ -170,33 +170,21 @@ impl Worker {
                 .fetch_max(fabric::private_rss_bytes(), Ordering::Relaxed);
             // The node's totals include this subscreen before it asks for the next one: the
             // host collects figures as soon as the last request has come in.
-            self.add_totals(&before, &trace_stats);
+            self.add_totals(&trace_stats);
             finished = Some(id);
         }
         Ok(())
     }
 
-    /// Adds the rays and samples traced between `before` and `after` to the node's totals.
-    fn add_totals(&self, before: &TraceStats, after: &TraceStats) {
+    /// Adds one subscreen's rays and samples to the node's totals.
+    fn add_totals(&self, t: &TraceStats) {
         for (counter, n) in [
-            (&self.stats.rays, after.rays() - before.rays()),
-            (&self.stats.samples, after.samples - before.samples),
-            (
-                &self.stats.camera_rays,
-                after.camera_rays - before.camera_rays,
-            ),
-            (
-                &self.stats.secondary_rays,
-                after.secondary_rays - before.secondary_rays,
-            ),
-            (
-                &self.stats.shadow_rays,
-                after.shadow_rays - before.shadow_rays,
-            ),
-            (
-                &self.stats.bad_samples,
-                after.bad_samples - before.bad_samples,
-            ),
+            (&self.stats.rays, t.rays()),
+            (&self.stats.samples, t.samples),
+            (&self.stats.camera_rays, t.camera_rays),
+            (&self.stats.secondary_rays, t.secondary_rays),
+            (&self.stats.shadow_rays, t.shadow_rays),
+            (&self.stats.bad_samples, t.bad_samples),
         ] {
             counter.fetch_add(n, Ordering::Relaxed);
         }
@@ -255,18 +243,17 @@ impl Worker {
     }
 }
 
-/// What subscreen `id` cost this thread: the counts since `before`, the ids its rays touched,
+/// What subscreen `id` cost this thread: its `counts`, the ids its rays touched,
 /// what it fetched, and the thread's CPU time since `cpu0`.
 fn record(
     id: u32,
     rect: Rect,
-    before: &TraceStats,
-    after: &TraceStats,
+    counts: &TraceStats,
     reader: &Reader,
     touched: &Touched,
     cpu0: Duration,
 ) -> SubscreenWork {
-    let pixels = after.pixels - before.pixels;
+    let pixels = counts.pixels;
     let (chunks, tiles) = touched.take();
     let (fetches, fetched_bytes) = reader.take_fetched();
     SubscreenWork {
@@ -280,8 +267,8 @@ fn record(
             .saturating_sub(cpu0)
             .as_secs_f64(),
         pixels,
-        samples: after.samples - before.samples,
-        rays: after.rays() - before.rays(),
+        samples: counts.samples,
+        rays: counts.rays(),
         chunks,
         tiles,
         fetched_bytes,

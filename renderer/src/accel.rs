@@ -848,6 +848,14 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
 }
 
 impl Bvh8 {
+    /// Asks for the lines of leaf block `leaf` (the walk's `leaf_lines` for a chunk's tree).
+    #[inline(always)]
+    fn prefetch_leaf(&self, leaf: u32) {
+        if let Some(b) = self.leaves.get(leaf as usize) {
+            prefetch_lines(b, size_of::<Tri4>());
+        }
+    }
+
     /// Updates `best` with the closest hit in this chunk (`chunk` is its id) that `accept`
     /// agrees to; true if it did.
     #[inline(always)]
@@ -866,20 +874,21 @@ impl Bvh8 {
         }
         let mut found = false;
         let mut tmax = best.t;
-        let leaf_lines = |leaf: u32| {
-            if let Some(b) = self.leaves.get(leaf as usize) {
-                prefetch_lines(b, size_of::<Tri4>());
-            }
-        };
-        walk::<true>(&self.nodes, q, &mut tmax, leaf_lines, |leaf, tmax| {
-            if let Some(b) = self.leaves.get(leaf as usize)
-                && closest_in_leaf(q, b, chunk, best, &mut accept)
-            {
-                *tmax = best.t;
-                found = true;
-            }
-            Visit::Continue
-        });
+        walk::<true>(
+            &self.nodes,
+            q,
+            &mut tmax,
+            |l| self.prefetch_leaf(l),
+            |leaf, tmax| {
+                if let Some(b) = self.leaves.get(leaf as usize)
+                    && closest_in_leaf(q, b, chunk, best, &mut accept)
+                {
+                    *tmax = best.t;
+                    found = true;
+                }
+                Visit::Continue
+            },
+        );
         found
     }
 
@@ -895,17 +904,16 @@ impl Bvh8 {
             return;
         }
         let mut t = tmax;
-        let leaf_lines = |leaf: u32| {
-            if let Some(b) = self.leaves.get(leaf as usize) {
-                prefetch_lines(b, size_of::<Tri4>());
-            }
-        };
-        walk::<false>(&self.nodes, q, &mut t, leaf_lines, |leaf, _| {
-            match self.leaves.get(leaf as usize) {
+        walk::<false>(
+            &self.nodes,
+            q,
+            &mut t,
+            |l| self.prefetch_leaf(l),
+            |leaf, _| match self.leaves.get(leaf as usize) {
                 Some(b) => hits_in_leaf(q, b, tmax, &mut f),
                 None => Visit::Continue,
-            }
-        });
+            },
+        );
     }
 }
 
@@ -1223,7 +1231,8 @@ mod tests {
             Vec3::new(0.01, 0.02, -1.0).normalize(),
         ));
         assert!(q.is_finite());
-        assert!(chunk.intersect(&q, &mut f32::INFINITY.clone()).is_some());
+        let mut tmax = f32::INFINITY;
+        assert!(chunk.intersect(&q, &mut tmax).is_some());
     }
 
     #[test]
