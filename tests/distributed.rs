@@ -93,6 +93,10 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
         t["cache_evictions"].as_u64().unwrap() > 0,
         "a 5% cache must evict"
     );
+    // Coherent rays (the default): paths waited for chunks and tiles the full cache lacked.
+    assert_eq!(v["coherent_rays"], true);
+    assert!(t["paths_deferred"].as_u64().unwrap() > 0, "{t}");
+    assert!(t["deferred_fetches"].as_u64().unwrap() > 0, "{t}");
     let fetched =
         t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap();
     let data_bytes = v["cache_bytes"].as_f64().unwrap() / 0.05;
@@ -147,6 +151,30 @@ fn tiny_cluster_matches_in_every_mode() {
             "--adaptive",
             "--render-threads",
             "2",
+        ],
+        // A cache of a few chunks: paths wait for what it lacks (coherent rays), or each
+        // miss is fetched at once.
+        vec![
+            "--transfer",
+            "demand",
+            "--cache",
+            "8",
+            "--chunk-triangles",
+            "128",
+            "--subscreens",
+            "5",
+        ],
+        vec![
+            "--transfer",
+            "demand",
+            "--cache",
+            "8",
+            "--chunk-triangles",
+            "128",
+            "--subscreens",
+            "5",
+            "--coherent-rays",
+            "off",
         ],
         vec![
             "--transfer",

@@ -47,6 +47,8 @@ pub struct ClusterRenderConfig {
     /// Which subscreen a render node asking for work gets.
     pub order: schedule::Order,
     pub render_threads: u32,
+    /// Render nodes trace memory-coherent rays (see [`JobSpec::coherent_rays`]).
+    pub coherent_rays: bool,
 }
 
 /// Why a cluster render stopped without an image.
@@ -131,6 +133,8 @@ pub struct ClusterStats {
     pub subscreens_split: u32,
     pub adaptive: bool,
     pub order: schedule::Order,
+    /// Whether render nodes traced memory-coherent rays (the totals count paths put aside).
+    pub coherent_rays: bool,
     pub link_model: String,
     pub time_scale: f64,
     pub totals: NodeStats,
@@ -626,6 +630,7 @@ fn plan_job(
         dma_transport: config.dma_transport,
         cache_bytes,
         render_threads: config.render_threads,
+        coherent_rays: config.coherent_rays,
     };
     Ok(JobPlan {
         job,
@@ -1140,6 +1145,8 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
         totals.bytes_fetched_serial += n.bytes_fetched_serial;
         totals.bytes_fetched_shared += n.bytes_fetched_shared;
         totals.shared_segments += n.shared_segments;
+        totals.paths_deferred += n.paths_deferred;
+        totals.deferred_fetches += n.deferred_fetches;
         totals.bytes_served += n.bytes_served;
         totals.bytes_gbus += n.bytes_gbus;
         totals.frames_forwarded += n.frames_forwarded;
@@ -1234,6 +1241,7 @@ fn cluster_stats(
         subscreens_split: done.subscreens_split,
         adaptive: config.adaptive,
         order: config.order,
+        coherent_rays: config.coherent_rays,
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,

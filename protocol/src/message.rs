@@ -311,6 +311,11 @@ pub struct JobSpec {
     pub cache_bytes: u64,
     /// Rendering threads per render node.
     pub render_threads: u32,
+    /// Render nodes put a path that needs data they lack aside and go on with others
+    /// (memory-coherent rays, `renderer::render::render_rect_coherent`), instead of waiting
+    /// for each miss.
+    #[serde(default)]
+    pub coherent_rays: bool,
 }
 
 /// What one node did, reported at the end of a render.
@@ -355,6 +360,12 @@ pub struct NodeStats {
     pub peak_private_bytes: u64,
     /// Render nodes: chunks walked in place in a card's shared memory (never copied).
     pub chunks_in_place: u64,
+    /// Render nodes with coherent rays: times a path was put aside for an item the cache
+    /// lacked, and items fetched for waiting paths (each serving all that waited for it).
+    #[serde(default)]
+    pub paths_deferred: u64,
+    #[serde(default)]
+    pub deferred_fetches: u64,
     /// Render nodes: what each subscreen they rendered cost, in the order they finished.
     pub records: Vec<SubscreenWork>,
 }

@@ -36,6 +36,7 @@ use renderer::{
     chunk::Chunk,
     region::{Block, Region},
     scene::ChunkRules,
+    source::{Deferral, Item},
     texture::Tile,
 };
 
@@ -239,6 +240,7 @@ impl DemandCache {
             hits: Cell::new(0),
             fetches: Cell::new(0),
             fetched_bytes: Cell::new(0),
+            deferring: Cell::new(false),
         }
     }
 
@@ -268,6 +270,13 @@ impl DemandCache {
             .as_ref()
             .and_then(|s| s.shared.as_ref())
             .map_or(0, |s| s.count())
+    }
+
+    /// Whether the cache has had to evict: until then a miss is fetched at once even when
+    /// deferring, since waiting saves no fetch (and a cache that holds the whole scene never
+    /// makes a path wait).
+    fn full(&self) -> bool {
+        self.stats.evictions.load(Ordering::Relaxed) > 0
     }
 
     /// Bytes resident (not counting evicted items not yet freed).
@@ -599,6 +608,9 @@ pub struct Reader<'c> {
     /// Misses this thread fetched, and their bytes, since [`Reader::take_fetched`].
     fetches: Cell<u32>,
     fetched_bytes: Cell<u64>,
+    /// While set, a miss in a cache that has had to evict is answered with
+    /// [`DataError::Missing`], and fetched only when the renderer asks ([`Deferral::bring`]).
+    deferring: Cell<bool>,
 }
 
 impl Reader<'_> {
@@ -608,6 +620,12 @@ impl Reader<'_> {
         self.flush();
         self.announced
             .store(self.cache.epoch.load(Ordering::SeqCst), Ordering::SeqCst);
+    }
+
+    /// Whether a miss may now be deferred: the cache fetches on demand and has had to
+    /// evict, so a further fetch may evict what other paths still need.
+    pub fn may_defer(&self) -> bool {
+        self.cache.source.is_some() && self.cache.full()
     }
 
     /// How many items this thread fetched, and their bytes, since it last asked.
@@ -679,6 +697,34 @@ impl SceneData for Reader<'_> {
         if !p.is_null() {
             return Ok(self.hit(slot, p));
         }
+        if self.deferring.get() && self.cache.full() {
+            return Err(DataError::Missing(Item::Chunk(id)));
+        }
+        self.fetch_chunk(id)
+    }
+
+    #[inline(always)]
+    fn tile(&self, id: u32) -> Result<&Tile, DataError> {
+        let slot = self
+            .cache
+            .tiles
+            .get(id as usize)
+            .ok_or(DataError::NoTile(id))?;
+        let p = slot.item.load(Ordering::Acquire);
+        if !p.is_null() {
+            return Ok(self.hit(slot, p));
+        }
+        if self.deferring.get() && self.cache.full() {
+            return Err(DataError::Missing(Item::Tile(id)));
+        }
+        self.fetch_tile(id)
+    }
+}
+
+impl Reader<'_> {
+    /// The miss path of a chunk: fetched (this thread waits), validated, inserted.
+    #[inline(never)]
+    fn fetch_chunk(&self, id: u32) -> Result<&Chunk, DataError> {
         let fetched = self.cache.fetch(DataId::Chunk(id))?;
         self.fetched(fetched.word_count());
         let chunk = match fetched {
@@ -693,17 +739,9 @@ impl SceneData for Reader<'_> {
         Ok(unsafe { &*p })
     }
 
-    #[inline(always)]
-    fn tile(&self, id: u32) -> Result<&Tile, DataError> {
-        let slot = self
-            .cache
-            .tiles
-            .get(id as usize)
-            .ok_or(DataError::NoTile(id))?;
-        let p = slot.item.load(Ordering::Acquire);
-        if !p.is_null() {
-            return Ok(self.hit(slot, p));
-        }
+    /// The miss path of a tile, as of a chunk.
+    #[inline(never)]
+    fn fetch_tile(&self, id: u32) -> Result<&Tile, DataError> {
         let fetched = self.cache.fetch(DataId::Tile(id))?;
         self.fetched(fetched.word_count());
         let tile = Tile::from_region(fetched.into_parts()?.0)?;
@@ -713,6 +751,26 @@ impl SceneData for Reader<'_> {
             .insert(&self.cache.tiles, id, tile, bytes, true)?;
         // SAFETY: as in `hit`.
         Ok(unsafe { &*p })
+    }
+}
+
+impl Deferral for Reader<'_> {
+    fn defer(&self, on: bool) {
+        self.deferring.set(on);
+    }
+
+    fn bring(&self, item: Item) -> Result<(), DataError> {
+        let was = self.deferring.replace(false);
+        let got = match item {
+            Item::Chunk(id) => self.chunk(id).map(drop),
+            Item::Tile(id) => self.tile(id).map(drop),
+        };
+        self.deferring.set(was);
+        got
+    }
+
+    fn tick(&self) {
+        Reader::tick(self);
     }
 }
 
@@ -739,6 +797,41 @@ mod tests {
 
     fn glam_vec(x: f32, y: f32) -> glam::Vec3 {
         glam::Vec3::new(x, y, 0.0)
+    }
+
+    #[test]
+    fn a_deferring_reader_says_what_it_lacks_only_once_the_cache_has_evicted() {
+        let size = chunk(0, 4).len() as u64 * 4;
+        let cache = DemandCache::new(rules(3), 0, size * 2, None);
+        cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
+        cache.preload(DataId::Chunk(1), chunk(1, 4)).unwrap();
+        let mut reader = cache.reader();
+        reader.defer(true);
+        // Nothing evicted yet: a miss is fetched at once (here: refused, having no source).
+        assert!(!reader.may_defer());
+        assert!(matches!(reader.chunk(2), Err(DataError::Fetch(_))));
+        reader.tick();
+        assert!(reader.chunk(1).is_ok());
+        let third = validate_chunk(&rules(3), 2, Fetched::Words(chunk(2, 4))).unwrap();
+        reader.refresh();
+        cache.insert(&cache.chunks, 2, third, size, true).unwrap();
+        // Chunk 0 was evicted: now a miss is reported, not fetched.
+        let misses = cache.stats.misses.load(Ordering::Relaxed);
+        assert_eq!(
+            reader.chunk(0).err(),
+            Some(DataError::Missing(Item::Chunk(0)))
+        );
+        assert_eq!(cache.stats.misses.load(Ordering::Relaxed), misses);
+        // Brought on request, and resident items are simply there.
+        assert!(matches!(
+            reader.bring(Item::Chunk(0)),
+            Err(DataError::Fetch(_))
+        ));
+        assert_eq!(cache.stats.misses.load(Ordering::Relaxed), misses + 1);
+        assert!(reader.bring(Item::Chunk(2)).is_ok());
+        assert!(reader.chunk(1).is_ok());
+        reader.defer(false);
+        assert!(matches!(reader.chunk(0), Err(DataError::Fetch(_))));
     }
 
     #[test]

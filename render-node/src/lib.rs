@@ -261,6 +261,8 @@ fn node_stats(
         peak_rss_bytes: fabric::peak_rss_bytes(),
         peak_private_bytes: g(&w.peak_private).max(fabric::private_rss_bytes()),
         chunks_in_place: cache.map_or(0, |c| g(&c.stats.in_place)),
+        paths_deferred: g(&w.paths_deferred),
+        deferred_fetches: g(&w.deferred_fetches),
         records: w.records.lock().expect("records lock").clone(),
         ..NodeStats::default()
     }

@@ -192,6 +192,7 @@ mod tests {
             dma_transport: DmaTransport::Auto,
             cache_bytes,
             render_threads: 1,
+            coherent_rays: false,
         })
     }
 

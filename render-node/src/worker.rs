@@ -14,7 +14,10 @@ use std::{
 use fabric::{Fabric, Route};
 use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
 use renderer::{
-    SceneHeader, render::render_pixel, source::Touched, trace::TraceStats, trace::Tracer,
+    SceneHeader,
+    render::{CoherenceStats, render_pixel, render_rect_coherent},
+    source::Touched,
+    trace::{TraceStats, Tracer},
 };
 
 use crate::cache::{DemandCache, Reader};
@@ -43,30 +46,67 @@ pub enum RenderError {
     Send(#[from] fabric::SendError),
 }
 
-/// A subscreen being rendered: rows `next_row..end_row` (relative to `rect`) are still to do.
-/// The host may ask to have the tail back; `end_row` then moves up.
+/// A subscreen being rendered: which of its rows (relative to `rect`) are still to do. The
+/// host may ask to have the tail back. The next row to begin and the end are one word, so
+/// that taking rows and giving the tail back never overlap, however they interleave.
 pub struct Active {
     pub rect: Rect,
-    pub next_row: AtomicU32,
-    pub end_row: AtomicU32,
+    /// `next | end << 32`: rows `next..end` are still to do.
+    rows: AtomicU64,
 }
 
 impl Active {
+    pub fn new(rect: Rect) -> Active {
+        Active {
+            rect,
+            rows: AtomicU64::new((rect.height as u64) << 32),
+        }
+    }
+
+    fn split(w: u64) -> (u32, u32) {
+        (w as u32, (w >> 32) as u32)
+    }
+
+    /// Takes up to `most` (at least one) of the rows still to do, from the top.
+    pub fn take(&self, most: u32) -> Option<std::ops::Range<u32>> {
+        let mut w = self.rows.load(Ordering::SeqCst);
+        loop {
+            let (next, end) = Self::split(w);
+            if next >= end {
+                return None;
+            }
+            let to = end.min(next.saturating_add(most.max(1)));
+            match self.rows.compare_exchange(
+                w,
+                to as u64 | (end as u64) << 32,
+                Ordering::SeqCst,
+                Ordering::SeqCst,
+            ) {
+                Ok(_) => return Some(next..to),
+                Err(now) => w = now,
+            }
+        }
+    }
+
     /// Gives back the unbegun second half of the remaining rows; returns the first row given
     /// back (the end, when there is nothing to give).
     pub fn give_back(&self) -> u32 {
-        let next = self.next_row.load(Ordering::SeqCst);
-        let end = self.end_row.load(Ordering::SeqCst);
-        if end <= next + 1 {
-            return end;
-        }
-        let mid = next + (end - next).div_ceil(2);
-        match self
-            .end_row
-            .compare_exchange(end, mid, Ordering::SeqCst, Ordering::SeqCst)
-        {
-            Ok(_) => mid,
-            Err(now) => now,
+        let mut w = self.rows.load(Ordering::SeqCst);
+        loop {
+            let (next, end) = Self::split(w);
+            if end <= next + 1 {
+                return end;
+            }
+            let mid = next + (end - next).div_ceil(2);
+            match self.rows.compare_exchange(
+                w,
+                next as u64 | (mid as u64) << 32,
+                Ordering::SeqCst,
+                Ordering::SeqCst,
+            ) {
+                Ok(_) => return mid,
+                Err(now) => w = now,
+            }
         }
     }
 }
@@ -84,6 +124,9 @@ pub struct WorkStats {
     pub secondary_rays: AtomicU64,
     pub shadow_rays: AtomicU64,
     pub bad_samples: AtomicU64,
+    /// Coherent rays: paths put aside for data, and items fetched for them.
+    pub paths_deferred: AtomicU64,
+    pub deferred_fetches: AtomicU64,
     pub render_ns: AtomicU64,
     pub idle_ns: AtomicU64,
     /// What each subscreen cost, for the host's per-subscreen records (one push per
@@ -139,11 +182,7 @@ impl Worker {
                 other => return Err(WorkerError::Answer(format!("{other:?}"))),
             };
             let t1 = Instant::now();
-            let active = Arc::new(Active {
-                rect,
-                next_row: AtomicU32::new(0),
-                end_row: AtomicU32::new(rect.height),
-            });
+            let active = Arc::new(Active::new(rect));
             self.active
                 .lock()
                 .expect("active lock")
@@ -200,47 +239,89 @@ impl Worker {
     ) -> Result<(), RenderError> {
         let rect = active.rect;
         let settings = &self.job.settings;
-        let mut line: Vec<[f32; 3]> = Vec::with_capacity(rect.width as usize);
+        let mut pixels: Vec<[f32; 3]> = Vec::new();
         loop {
-            let row = active.next_row.fetch_add(1, Ordering::SeqCst);
-            if row >= active.end_row.load(Ordering::SeqCst) {
-                return Ok(());
-            }
-            let y = rect.y + row;
-            line.clear();
-            // Between scan lines this thread holds nothing of the cache: evicted data it
-            // used may be freed.
+            // Coherent rays want many paths in flight, so once misses can wait (a full cache
+            // that fetches on demand) as many rows are taken at once as fill a batch. One at a
+            // time otherwise: rows not begun can be given back to idle nodes.
+            let rows_at_once = if self.job.coherent_rays && reader.may_defer() {
+                coherent_rows(rect.width, settings.spp)
+            } else {
+                1
+            };
+            let Some(rows) = active.take(rows_at_once) else {
+                break;
+            };
+            // Between batches of rows this thread holds nothing of the cache: evicted data
+            // it used may be freed.
             reader.refresh();
             let data = touched.watching(&*reader);
             let tracer = Tracer::new(&self.scene, &data);
-            for x in rect.x..rect.x + rect.width {
-                reader.tick();
-                let px = render_pixel(&tracer, &self.job.camera, settings, x, y, trace_stats)?;
-                line.push(px);
+            let band = Rect {
+                x: rect.x,
+                y: rect.y + rows.start,
+                width: rect.width,
+                height: rows.end - rows.start,
+            };
+            if self.job.coherent_rays {
+                let mut coherence = CoherenceStats::default();
+                pixels = render_rect_coherent(
+                    &tracer,
+                    &*reader,
+                    &self.job.camera,
+                    settings,
+                    band,
+                    trace_stats,
+                    &mut coherence,
+                )?;
+                self.stats
+                    .paths_deferred
+                    .fetch_add(coherence.deferrals, Ordering::Relaxed);
+                self.stats
+                    .deferred_fetches
+                    .fetch_add(coherence.brings, Ordering::Relaxed);
+            } else {
+                pixels.clear();
+                for x in rect.x..rect.x + rect.width {
+                    reader.tick();
+                    let px =
+                        render_pixel(&tracer, &self.job.camera, settings, x, band.y, trace_stats)?;
+                    pixels.push(px);
+                }
             }
             let t = tracer.stats();
             trace_stats.camera_rays += t.camera_rays;
             trace_stats.secondary_rays += t.secondary_rays;
             trace_stats.shadow_rays += t.shadow_rays;
-            let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(&line).into();
-            let msg = Message::Pixels {
-                subscreen: id,
-                y,
-                x: rect.x,
-                width: rect.width,
-            };
-            // To the fork node serving this node now: another card's, once its own is lost.
-            let fork = self
-                .fabric
-                .serving_fork(self.fabric.me())
-                .unwrap_or(self.fork);
-            self.fabric.send(fork, &msg, words, 0)?;
-            self.stats.rows.fetch_add(1, Ordering::Relaxed);
-            self.stats
-                .pixels
-                .fetch_add(rect.width as u64, Ordering::Relaxed);
+            for (row, line) in pixels.chunks(rect.width.max(1) as usize).enumerate() {
+                let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(line).into();
+                let msg = Message::Pixels {
+                    subscreen: id,
+                    y: band.y + row as u32,
+                    x: rect.x,
+                    width: rect.width,
+                };
+                // To the fork node serving this node now: another card's, once its own is
+                // lost.
+                let fork = self
+                    .fabric
+                    .serving_fork(self.fabric.me())
+                    .unwrap_or(self.fork);
+                self.fabric.send(fork, &msg, words, 0)?;
+                self.stats.rows.fetch_add(1, Ordering::Relaxed);
+                self.stats
+                    .pixels
+                    .fetch_add(rect.width as u64, Ordering::Relaxed);
+            }
         }
+        Ok(())
     }
+}
+
+/// Rows of `width` pixels at `spp` samples that fill one batch of coherent rays (at least one).
+fn coherent_rows(width: u32, spp: u32) -> u32 {
+    let per_row = (width.max(1) as u64) * spp.max(1) as u64;
+    (renderer::render::PATHS_IN_FLIGHT as u64 / per_row).clamp(1, u32::MAX as u64) as u32
 }
 
 /// What subscreen `id` cost this thread: its `counts`, the ids its rays touched,
@@ -281,20 +362,18 @@ mod tests {
     use super::*;
 
     #[test]
-    fn give_back_halves_the_rest_and_never_the_row_in_hand() {
-        let a = Active {
-            rect: Rect {
-                x: 0,
-                y: 0,
-                width: 4,
-                height: 10,
-            },
-            next_row: AtomicU32::new(2),
-            end_row: AtomicU32::new(10),
-        };
+    fn give_back_halves_the_rest_and_never_the_rows_in_hand() {
+        let a = Active::new(Rect {
+            x: 0,
+            y: 0,
+            width: 4,
+            height: 10,
+        });
+        assert_eq!(a.take(2), Some(0..2));
         assert_eq!(a.give_back(), 6);
-        assert_eq!(a.end_row.load(Ordering::SeqCst), 6);
-        a.next_row.store(5, Ordering::SeqCst);
+        assert_eq!(a.take(3), Some(2..5));
         assert_eq!(a.give_back(), 6, "one row left: nothing to give");
+        assert_eq!(a.take(4), Some(5..6), "no row past the end given back");
+        assert_eq!(a.take(1), None);
     }
 }

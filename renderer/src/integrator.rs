@@ -19,7 +19,7 @@ use crate::{
     math::{offset_ray_origin, power_heuristic},
     ray::Ray,
     render::RenderSettings,
-    sampler::Sampler,
+    sampler::{SampleKey, Sampler},
     source::{DataError, SceneData},
     trace::{AlphaKey, Tracer, shadow_ray},
 };
@@ -183,25 +183,101 @@ const ROULETTE_MAX_SURVIVAL: f32 = 0.95;
 
 fn path<D: SceneData>(
     t: &Tracer<D>,
-    mut ray: Ray,
+    ray: Ray,
     sampler: &mut Sampler<'_>,
     max_depth: u32,
     clamp: f32,
 ) -> Result<Vec3, DataError> {
-    let scene = t.scene;
-    let mut l = Vec3::ZERO;
-    let mut beta = Vec3::ONE;
-    // Where the previous bounce sampled its direction, its density and whether it was a delta.
-    let mut prev: Option<(Vec3, f32, bool)> = None;
-    let mut medium: Option<u32> = None;
-    // Whether the path has scattered off a rough surface: light it then finds right after a
-    // mirror or glass bounce came by a caustic path.
-    let mut scattered_rough = false;
+    let mut state = PathState::new(ray, sampler);
+    while state.step(t, sampler, max_depth, clamp)? {}
+    Ok(state.radiance())
+}
 
-    let sample = sampler.key();
-    for bounce in 0..max_depth {
+/// A path between its bounces: everything the path tracer carries from one hit to the next.
+/// A bounce reads only this and the sampler's numbers for that bounce (which the sample
+/// index and the bounce number fix), so a bounce that stopped for data a render node lacks
+/// can be run again from the same state later and give the same bits: what lets a render
+/// node put such a path aside while it traces others (memory-coherent rays,
+/// [`crate::render::render_rect_coherent`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PathState {
+    ray: Ray,
+    l: Vec3,
+    beta: Vec3,
+    /// Where the previous bounce sampled its direction, its density and whether it was a delta.
+    prev: Option<(Vec3, f32, bool)>,
+    medium: Option<u32>,
+    /// Whether the path has scattered off a rough surface: light it then finds right after a
+    /// mirror or glass bounce came by a caustic path.
+    scattered_rough: bool,
+    bounce: u32,
+    done: bool,
+    /// The sample's key for draws not on the sampler's dimensions (alpha).
+    sample: SampleKey,
+}
+
+impl PathState {
+    /// A path about to follow its camera ray, for the sample `sampler` draws.
+    pub fn new(ray: Ray, sampler: &Sampler<'_>) -> PathState {
+        PathState {
+            ray,
+            l: Vec3::ZERO,
+            beta: Vec3::ONE,
+            prev: None,
+            medium: None,
+            scattered_rough: false,
+            bounce: 0,
+            done: false,
+            sample: sampler.key(),
+        }
+    }
+
+    /// The light the path has gathered so far (all of it once it is done).
+    pub fn radiance(&self) -> Vec3 {
+        self.l
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// Follows the path through one more hit; false once it has ended. On an error the
+    /// state may be half updated: keep a copy to run the bounce again.
+    #[inline(always)]
+    pub fn step<D: SceneData>(
+        &mut self,
+        t: &Tracer<D>,
+        sampler: &mut Sampler<'_>,
+        max_depth: u32,
+        clamp: f32,
+    ) -> Result<bool, DataError> {
+        if self.done || self.bounce >= max_depth {
+            self.done = true;
+            return Ok(false);
+        }
+        let bounce = self.bounce;
+        let more = self.bounce_once(t, sampler, clamp)?;
+        self.bounce = bounce + 1;
+        self.done = !more || self.bounce >= max_depth;
+        Ok(!self.done)
+    }
+
+    #[inline(always)]
+    fn bounce_once<D: SceneData>(
+        &mut self,
+        t: &Tracer<D>,
+        sampler: &mut Sampler<'_>,
+        clamp: f32,
+    ) -> Result<bool, DataError> {
+        let scene = t.scene;
+        let bounce = self.bounce;
+        let ray = self.ray;
+        let prev = self.prev;
         sampler.start_bounce(bounce);
-        let key = AlphaKey { sample, bounce };
+        let key = AlphaKey {
+            sample: self.sample,
+            bounce,
+        };
         let Some(hit) = t.closest(&ray, key)? else {
             // The ray leaves the scene: the environment, weighted against light sampling.
             if let Some(env) = scene.environment_light {
@@ -212,17 +288,23 @@ fn path<D: SceneData>(
                         power_heuristic(pdf_bsdf, pmf * UNIFORM_SPHERE_PDF)
                     }
                 };
-                let c = beta * scene.environment.radiance(Vec3::from(ray.dir).normalize()) * weight;
-                let caustic = scattered_rough && matches!(prev, Some((_, _, true)));
-                l += clamped(c, caustic, clamp);
+                let c = self.beta
+                    * scene.environment.radiance(Vec3::from(ray.dir).normalize())
+                    * weight;
+                let caustic = self.scattered_rough && matches!(prev, Some((_, _, true)));
+                self.l += clamped(c, caustic, clamp);
             }
-            break;
+            return Ok(false);
         };
-        beta *= attenuate(
-            hit.tri_hit.t,
-            &ray,
-            medium.map(|m| &scene.materials[m as usize]),
-        );
+        // Whatever below may still fail for data (a texture tile), the state is only
+        // written once nothing can: a bounce run again must start from the same state.
+        let mut beta = self.beta
+            * attenuate(
+                hit.tri_hit.t,
+                &ray,
+                self.medium.map(|m| &scene.materials[m as usize]),
+            );
+        let mut l = self.l;
 
         let s = hit.chunk.surface(hit.tri, &hit.tri_hit);
         let m = &scene.materials[s.material as usize];
@@ -245,7 +327,7 @@ fn path<D: SceneData>(
                     }
                 }
             };
-            let caustic = scattered_rough && matches!(prev, Some((_, _, true)));
+            let caustic = self.scattered_rough && matches!(prev, Some((_, _, true)));
             l += clamped(beta * params.emission * weight, caustic, clamp);
         }
 
@@ -277,6 +359,8 @@ fn path<D: SceneData>(
                 }
             }
         }
+        // Nothing below asks for data.
+        self.l = l;
 
         // Continue the path.
         let u_dir = sampler.get_2d();
@@ -287,11 +371,11 @@ fn path<D: SceneData>(
             sampler.get_1d()
         };
         let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else {
-            break;
+            return Ok(false);
         };
         beta *= bs.weight;
         if !beta.is_finite() || beta.max_element() <= 0.0 {
-            break;
+            return Ok(false);
         }
         // Russian roulette from the fourth hit, relative to half the throughput. Starting it
         // at the sixth hit instead (Mitsuba's default) was measured with survival = the
@@ -300,20 +384,21 @@ fn path<D: SceneData>(
         if bounce >= ROULETTE_FROM_BOUNCE {
             let survive = (beta.max_element() / ROULETTE_THROUGHPUT).min(ROULETTE_MAX_SURVIVAL);
             if sampler.get_1d() >= survive {
-                break;
+                return Ok(false);
             }
             beta /= survive;
         }
         if bs.transmitted {
-            medium = next_medium(m, s.material, front, medium);
+            self.medium = next_medium(m, s.material, front, self.medium);
         }
+        self.beta = beta;
         let origin = offset_ray_origin(s.p, s.p_error, ng, bs.wi.into());
-        ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
+        self.ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
         t.count_secondary_ray();
-        prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
-        scattered_rough |= !bs.delta;
+        self.prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
+        self.scattered_rough |= !bs.delta;
+        Ok(true)
     }
-    Ok(l)
 }
 
 /// Surfaces smoother than this are mirrors to the Whitted integrator.

@@ -22,6 +22,38 @@ pub enum DataError {
     Corrupt(String),
     #[error("rendering was cancelled")]
     Cancelled,
+    /// Only while deferring (see [`Deferral`]): the item is not here, and was not fetched.
+    #[error("{0} is not here yet")]
+    Missing(Item),
+}
+
+/// A chunk or a texture tile, by id.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Item {
+    Chunk(u32),
+    Tile(u32),
+}
+
+impl std::fmt::Display for Item {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Item::Chunk(id) => write!(f, "chunk {id}"),
+            Item::Tile(id) => write!(f, "texture tile {id}"),
+        }
+    }
+}
+
+/// Data that may have to be fetched, and can instead say at once what it lacks, so that
+/// the renderer puts the ray that needs it aside and goes on with others
+/// ([`crate::render::render_rect_coherent`]): a render node's cache.
+pub trait Deferral {
+    /// While on, asking for an item that is not here gives [`DataError::Missing`] instead
+    /// of fetching it.
+    fn defer(&self, on: bool);
+    /// Fetches `item` now (waiting for it) unless it is here already.
+    fn bring(&self, item: Item) -> Result<(), DataError>;
+    /// Marks the passing of time for the least-recently-used order.
+    fn tick(&self);
 }
 
 /// Implementations need not be shared between threads: a render node gives each rendering

@@ -452,6 +452,11 @@ struct RenderArgs {
     /// Rendering threads per render node.
     #[arg(long, default_value_t = 1)]
     render_threads: u32,
+    /// Memory-coherent rays on render nodes: on (a path whose data the cache lacks waits
+    /// while others go on; each fetch then serves every path waiting for that item) or off
+    /// (each miss is fetched at once while the thread waits, as in the paper).
+    #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
+    coherent_rays: bool,
     #[arg(long, default_value_t = 640)]
     width: u32,
     /// Image height; by default from the camera's aspect ratio, else 480.
@@ -678,6 +683,14 @@ fn parse_dma_transport(s: &str) -> Result<protocol::DmaTransport, String> {
     }
 }
 
+fn parse_on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        o => Err(format!("expected on or off, not {o:?}")),
+    }
+}
+
 /// The demo scene's indirect clamp: its caustics (through the glass sphere and off the
 /// mirror onto the walls) are fireflies that unbiased sampling takes minutes to average out.
 const DEMO_CLAMP_INDIRECT: f32 = 4.0;
@@ -779,6 +792,7 @@ fn render(args: RenderArgs) -> Result<()> {
             adaptive: args.adaptive,
             order: args.order,
             render_threads: args.render_threads.max(1),
+            coherent_rays: args.coherent_rays,
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let rt = runtime()?;
