@@ -686,6 +686,8 @@ impl SceneData for Reader<'_> {
     where
         Self: 'a;
 
+    const MAY_DEFER: bool = true;
+
     #[inline(always)]
     fn chunk(&self, id: u32) -> Result<&Chunk, DataError> {
         let slot = self

@@ -17,7 +17,7 @@ use crate::{
     sampler::PixelSeeds,
     scene::SceneHeader,
     source::{DataError, Deferral, Item, SceneData, Touched},
-    trace::{TraceStats, Tracer},
+    trace::{QueryMemo, TraceStats, Tracer},
 };
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -216,6 +216,8 @@ struct Flight {
     sample: u32,
     state: integrator::PathState,
     waits: u32,
+    /// What the waiting bounce's ray queries found so far.
+    memo: Option<Box<QueryMemo>>,
 }
 
 /// Turns deferral off when dropped, however the render ends.
@@ -299,6 +301,7 @@ pub fn render_rect_coherent<D: SceneData, F: Deferral>(
                     sample,
                     state: integrator::PathState::new(ray, &s),
                     waits: 0,
+                    memo: None,
                 });
             }
         }
@@ -397,6 +400,7 @@ impl<D: SceneData, F: Deferral> Runner<'_, '_, D, F> {
                 let counts = (tracer.secondary_rays.get(), tracer.shadow_rays.get());
                 let mut sampler = self.seeds[f.pixel as usize].sampler(f.sample);
                 let give_up = f.waits >= MAX_WAITS_PER_BOUNCE;
+                tracer.memo.set(f.memo.take());
                 if give_up {
                     self.coherence.gave_up += 1;
                     self.data.defer(false);
@@ -410,10 +414,13 @@ impl<D: SceneData, F: Deferral> Runner<'_, '_, D, F> {
                 if give_up {
                     self.data.defer(true);
                 }
+                // Kept only while the bounce waits.
+                let memo = tracer.memo.take();
                 match stepped {
                     Ok(true) => f.waits = 0,
                     Ok(false) => break,
                     Err(DataError::Missing(item)) => {
+                        f.memo = memo;
                         // The bounce is run again from where it began once `item` is here.
                         f.state = before;
                         tracer.secondary_rays.set(counts.0);
@@ -712,6 +719,8 @@ mod tests {
         type ChunkRef<'a> = &'a Chunk;
         type TileRef<'a> = &'a Tile;
 
+        const MAY_DEFER: bool = true;
+
         fn chunk(&self, id: u32) -> Result<&Chunk, DataError> {
             if !self.use_chunk(id) {
                 return Err(DataError::Missing(Item::Chunk(id)));
@@ -838,9 +847,9 @@ mod tests {
             coherence.deferrals > 0 && coherence.brings > 0,
             "{coherence:?}"
         );
-        // A cache of 8 of the scene's chunks: 2335 fetches against 3953 when measured.
+        // A cache of 8 of the scene's chunks: 980 fetches against 3953 when measured.
         assert!(
-            c_fetches * 3 < fetches * 2,
+            c_fetches * 3 < fetches,
             "coherent rays fetched {c_fetches} chunks, against {fetches} fetching on each miss"
         );
     }

@@ -66,6 +66,10 @@ pub trait SceneData {
     where
         Self: 'a;
 
+    /// Whether asking may give [`DataError::Missing`] (data that defers, [`Deferral`]): the
+    /// ray queries' bookkeeping for it is compiled only where it can be needed.
+    const MAY_DEFER: bool = false;
+
     fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError>;
     fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError>;
 }
@@ -171,6 +175,8 @@ impl<D: SceneData> SceneData for Noting<'_, D> {
         = D::TileRef<'b>
     where
         Self: 'b;
+
+    const MAY_DEFER: bool = D::MAY_DEFER;
 
     #[inline(always)]
     fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError> {

@@ -13,7 +13,7 @@ use crate::{
     ray::{Ray, RayQuery},
     sampler::{SampleKey, Sampler},
     scene::SceneHeader,
-    source::{DataError, SceneData},
+    source::{DataError, Item, SceneData},
     triangle::TriHit,
 };
 
@@ -83,6 +83,78 @@ pub struct Tracer<'a, D: SceneData> {
     pub camera_rays: Cell<u64>,
     pub secondary_rays: Cell<u64>,
     pub shadow_rays: Cell<u64>,
+    /// What the queries of the path being traced found before they stopped for a missing
+    /// item (memory-coherent rays swap each path's in and out; empty otherwise).
+    pub memo: Cell<Option<Box<QueryMemo>>>,
+}
+
+/// What a path's ray queries found before they stopped for missing data.
+#[derive(Debug, Default)]
+pub struct QueryMemo {
+    closest: Option<ClosestMemo>,
+    occluded: Option<OccludedMemo>,
+}
+
+/// A ray as bits, to know a memo is of this very ray.
+type RayBits = [u32; 7];
+
+fn ray_bits(r: &Ray) -> RayBits {
+    let (o, d) = (r.origin, r.dir);
+    [o.x, o.y, o.z, d.x, d.y, d.z, r.tmax].map(f32::to_bits)
+}
+
+trait RayMemo {
+    fn ray(&self) -> RayBits;
+}
+
+#[derive(Debug)]
+struct ClosestMemo {
+    ray: RayBits,
+    best: Closest,
+    searched: Searched,
+    /// Every chunk was searched: only the best hit's chunk is still to be had.
+    complete: bool,
+}
+
+impl RayMemo for ClosestMemo {
+    fn ray(&self) -> RayBits {
+        self.ray
+    }
+}
+
+#[derive(Debug)]
+struct OccludedMemo {
+    ray: RayBits,
+    searched: Searched,
+}
+
+impl RayMemo for OccludedMemo {
+    fn ray(&self) -> RayBits {
+        self.ray
+    }
+}
+
+/// Chunks a query has searched, the first few of them: searching one again is only work
+/// done twice, so those past the end are simply not noted.
+#[derive(Clone, Copy, Debug, Default)]
+struct Searched {
+    ids: [u32; 15],
+    len: u8,
+}
+
+impl Searched {
+    #[inline(always)]
+    fn add(&mut self, id: u32) {
+        if let Some(slot) = self.ids.get_mut(self.len as usize) {
+            *slot = id;
+            self.len += 1;
+        }
+    }
+
+    #[inline(always)]
+    fn holds(&self, id: u32) -> bool {
+        self.len > 0 && self.ids[..self.len as usize].contains(&id)
+    }
 }
 
 impl<'a, D: SceneData> Tracer<'a, D> {
@@ -93,6 +165,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             camera_rays: Cell::new(0),
             secondary_rays: Cell::new(0),
             shadow_rays: Cell::new(0),
+            memo: Cell::new(None),
         }
     }
 
@@ -155,82 +228,207 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     /// The nearest surface the ray meets in (0, tmax). Of surfaces at exactly the same
     /// distance, the one of the lowest (chunk, triangle) index, whatever order the walk met
     /// them in.
+    ///
+    /// Where the data says a chunk is missing ([`DataError::Missing`], while deferring), the
+    /// walk goes on through the others, and the answer is that missing chunk (the nearest
+    /// that could still hold a nearer hit); what was searched is kept in [`Tracer::memo`],
+    /// so that asking again for the same ray, once the chunk is here, searches only what is
+    /// left. Searching a chunk again would give the same answer (ties are broken by index),
+    /// so the memo only saves work and the need to have every chunk here at once.
     pub fn closest(
         &self,
         ray: &Ray,
         key: AlphaKey,
     ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
         let q = RayQuery::new(ray);
-        let mut tmax = ray.tmax;
-        let mut best = Closest::new(ray.tmax);
+        let memo = if D::MAY_DEFER {
+            self.memo_of(ray, |m| &mut m.closest)
+        } else {
+            None
+        };
+        let (mut best, mut searched, complete) = match memo {
+            Some(m) => (m.best, m.searched, m.complete),
+            None => (Closest::new(ray.tmax), Searched::default(), false),
+        };
+        let mut tmax = best.t;
         let mut best_chunk: Option<D::ChunkRef<'a>> = None;
         let mut error = None;
-        accel::walk::<true>(
-            &self.scene.tlas.accel().nodes,
-            &q,
-            &mut tmax,
-            |_| {},
-            |chunk_id, tmax| {
-                let chunk = match self.data.chunk(chunk_id) {
-                    Ok(c) => c,
-                    Err(e) => {
-                        error = Some(e);
-                        return Visit::Stop;
+        let mut missing: Vec<u32> = Vec::new();
+        if !complete {
+            accel::walk::<true>(
+                &self.scene.tlas.accel().nodes,
+                &q,
+                &mut tmax,
+                |_| {},
+                |chunk_id, tmax| {
+                    if D::MAY_DEFER && searched.holds(chunk_id) {
+                        return Visit::Continue;
                     }
-                };
-                let kind = self.surface_kind(chunk_id);
-                let improved = if kind == SurfaceKind::Solid {
-                    chunk.accel().closest(&q, chunk_id, &mut best, |_, _| true)
-                } else {
-                    chunk.accel().closest(&q, chunk_id, &mut best, |tri, hit| {
-                        match self.passes_through(&chunk, kind, &q, tri, hit, key) {
-                            Ok(pass) => !pass,
-                            Err(e) => {
-                                error = Some(e);
-                                false
-                            }
+                    let chunk = match self.data.chunk(chunk_id) {
+                        Ok(c) => c,
+                        Err(DataError::Missing(_)) => {
+                            missing.push(chunk_id);
+                            return Visit::Continue;
                         }
-                    })
-                };
-                if improved {
-                    *tmax = best.t;
-                    best_chunk = Some(chunk);
-                }
-                if error.is_some() {
-                    Visit::Stop
-                } else {
-                    Visit::Continue
-                }
-            },
-        );
+                        Err(e) => {
+                            error = Some(e);
+                            return Visit::Stop;
+                        }
+                    };
+                    let kind = self.surface_kind(chunk_id);
+                    let improved = if kind == SurfaceKind::Solid {
+                        chunk.accel().closest(&q, chunk_id, &mut best, |_, _| true)
+                    } else {
+                        chunk.accel().closest(&q, chunk_id, &mut best, |tri, hit| {
+                            match self.passes_through(&chunk, kind, &q, tri, hit, key) {
+                                Ok(pass) => !pass,
+                                Err(e) => {
+                                    error = Some(e);
+                                    false
+                                }
+                            }
+                        })
+                    };
+                    if improved {
+                        *tmax = best.t;
+                        best_chunk = Some(chunk);
+                    }
+                    if error.is_some() {
+                        Visit::Stop
+                    } else {
+                        if D::MAY_DEFER {
+                            searched.add(chunk_id);
+                        }
+                        Visit::Continue
+                    }
+                },
+            );
+        }
         if let Some(e) = error {
+            if matches!(e, DataError::Missing(_)) {
+                self.keep_closest(ray, best, searched, false);
+            }
             return Err(e);
         }
-        Ok(match (best_chunk, best.hit) {
-            (Some(chunk), Some(tri_hit)) => Some(Hit {
-                chunk,
-                tri: best.tri,
-                tri_hit,
-            }),
-            _ => None,
-        })
+        // A missing chunk matters if a hit in it could still be nearer than the best.
+        if !missing.is_empty()
+            && let Some(&wanted) = missing
+                .iter()
+                .filter_map(|&c| self.chunk_entry(ray, c).map(|t| (t, c)))
+                .filter(|&(t, _)| t <= best.t)
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+                .map(|(_, c)| c)
+                .as_ref()
+        {
+            self.keep_closest(ray, best, searched, false);
+            return Err(DataError::Missing(Item::Chunk(wanted)));
+        }
+        let Some(tri_hit) = best.hit else {
+            return Ok(None);
+        };
+        let chunk = match best_chunk {
+            Some(c) => c,
+            // Found before the path waited: the chunk is asked for again.
+            None => match self.data.chunk(best.chunk) {
+                Ok(c) => c,
+                Err(e) => {
+                    if matches!(e, DataError::Missing(_)) {
+                        self.keep_closest(ray, best, searched, true);
+                    }
+                    return Err(e);
+                }
+            },
+        };
+        Ok(Some(Hit {
+            chunk,
+            tri: best.tri,
+            tri_hit,
+        }))
     }
 
-    /// Whether anything blocks the ray within (0, tmax).
+    /// Where the ray may enter chunk `id`'s box, a little early (None if it misses it by
+    /// a clear margin): whether a missing chunk can matter. Erring early only makes a path
+    /// wait for a chunk it turns out not to need.
+    fn chunk_entry(&self, ray: &Ray, id: u32) -> Option<f32> {
+        let Some(info) = self.scene.chunks.get(id as usize) else {
+            return Some(0.0);
+        };
+        let (lo, hi) = (info.bounds_min.to_array(), info.bounds_max.to_array());
+        let (o, d) = (ray.origin.to_array(), ray.dir.to_array());
+        let (mut near, mut far) = (0.0f32, f32::INFINITY);
+        for k in 0..3 {
+            let pad = 1e-4 * (hi[k] - lo[k]).abs().max(lo[k].abs().max(hi[k].abs()));
+            let (a, b) = (lo[k] - pad, hi[k] + pad);
+            if d[k] == 0.0 {
+                if o[k] < a || o[k] > b {
+                    return None;
+                }
+                continue;
+            }
+            let (t0, t1) = ((a - o[k]) / d[k], (b - o[k]) / d[k]);
+            near = near.max(t0.min(t1));
+            far = far.min(t0.max(t1));
+        }
+        if !(near.is_finite() || near == f32::INFINITY) {
+            return Some(0.0);
+        }
+        (near <= far * (1.0 + 1e-4)).then_some(near * (1.0 - 1e-4))
+    }
+
+    /// The memo of `ray`'s query of one kind, taken out, if one was kept for this very ray.
+    fn memo_of<M: RayMemo>(
+        &self,
+        ray: &Ray,
+        part: impl FnOnce(&mut QueryMemo) -> &mut Option<M>,
+    ) -> Option<M> {
+        let mut memo = self.memo.take()?;
+        let m = part(&mut memo).take();
+        self.memo.set(Some(memo));
+        m.filter(|m| m.ray() == ray_bits(ray))
+    }
+
+    fn keep_closest(&self, ray: &Ray, best: Closest, searched: Searched, complete: bool) {
+        let mut memo = self.memo.take().unwrap_or_default();
+        memo.closest = Some(ClosestMemo {
+            ray: ray_bits(ray),
+            best,
+            searched,
+            complete,
+        });
+        self.memo.set(Some(memo));
+    }
+
+    /// Whether anything blocks the ray within (0, tmax). Missing chunks are handled as in
+    /// [`Tracer::closest`]: the others are searched first, and a blocker found in any of
+    /// them answers without the missing ones.
     pub fn occluded(&self, ray: &Ray, key: AlphaKey) -> Result<bool, DataError> {
         self.shadow_rays.set(self.shadow_rays.get() + 1);
         let q = RayQuery::new(ray);
+        let mut searched = if D::MAY_DEFER {
+            self.memo_of(ray, |m| &mut m.occluded)
+                .map_or_else(Searched::default, |m| m.searched)
+        } else {
+            Searched::default()
+        };
         let mut tmax = ray.tmax;
         let mut blocked = false;
         let mut error = None;
+        let mut missing = None;
         accel::walk::<false>(
             &self.scene.tlas.accel().nodes,
             &q,
             &mut tmax,
             |_| {},
             |chunk_id, tmax| {
+                if D::MAY_DEFER && searched.holds(chunk_id) {
+                    return Visit::Continue;
+                }
                 let chunk = match self.data.chunk(chunk_id) {
                     Ok(c) => c,
+                    Err(DataError::Missing(_)) => {
+                        missing = missing.or(Some(chunk_id));
+                        return Visit::Continue;
+                    }
                     Err(e) => {
                         error = Some(e);
                         return Visit::Stop;
@@ -257,13 +455,30 @@ impl<'a, D: SceneData> Tracer<'a, D> {
                 if blocked || error.is_some() {
                     Visit::Stop
                 } else {
+                    if D::MAY_DEFER {
+                        searched.add(chunk_id);
+                    }
                     Visit::Continue
                 }
             },
         );
+        if blocked {
+            return Ok(true);
+        }
+        let error = error.or(missing.map(|c| DataError::Missing(Item::Chunk(c))));
         match error {
-            Some(e) => Err(e),
-            None => Ok(blocked),
+            Some(e) => {
+                if matches!(e, DataError::Missing(_)) {
+                    let mut memo = self.memo.take().unwrap_or_default();
+                    memo.occluded = Some(OccludedMemo {
+                        ray: ray_bits(ray),
+                        searched,
+                    });
+                    self.memo.set(Some(memo));
+                }
+                Err(e)
+            }
+            None => Ok(false),
         }
     }
 
