@@ -617,6 +617,12 @@ impl Reader<'_> {
     /// Lets evicted items that this thread may have used be freed: call it where the
     /// thread holds no reference into the cache (between scan lines).
     pub fn refresh(&mut self) {
+        self.announce();
+    }
+
+    /// Announces the current epoch: this reader holds nothing retired before it. Called
+    /// only where no reference handed out by this reader is alive.
+    fn announce(&self) {
         self.flush();
         self.announced
             .store(self.cache.epoch.load(Ordering::SeqCst), Ordering::SeqCst);
@@ -761,7 +767,10 @@ impl Deferral for Reader<'_> {
         self.deferring.set(on);
     }
 
-    fn bring(&self, item: Item) -> Result<(), DataError> {
+    unsafe fn bring(&self, item: Item) -> Result<(), DataError> {
+        // The caller holds nothing of the cache (the trait's contract), as between scan
+        // lines: what was evicted may be freed.
+        self.announce();
         let was = self.deferring.replace(false);
         let got = match item {
             Item::Chunk(id) => self.chunk(id).map(drop),
@@ -825,12 +834,14 @@ mod tests {
         );
         assert_eq!(cache.stats.misses.load(Ordering::Relaxed), misses);
         // Brought on request, and resident items are simply there.
+        // SAFETY: no reference from the reader is alive.
         assert!(matches!(
-            reader.bring(Item::Chunk(0)),
+            unsafe { reader.bring(Item::Chunk(0)) },
             Err(DataError::Fetch(_))
         ));
         assert_eq!(cache.stats.misses.load(Ordering::Relaxed), misses + 1);
-        assert!(reader.bring(Item::Chunk(2)).is_ok());
+        // SAFETY: as above.
+        assert!(unsafe { reader.bring(Item::Chunk(2)) }.is_ok());
         assert!(reader.chunk(1).is_ok());
         reader.defer(false);
         assert!(matches!(reader.chunk(0), Err(DataError::Fetch(_))));

@@ -50,8 +50,13 @@ pub trait Deferral {
     /// While on, asking for an item that is not here gives [`DataError::Missing`] instead
     /// of fetching it.
     fn defer(&self, on: bool);
-    /// Fetches `item` now (waiting for it) unless it is here already.
-    fn bring(&self, item: Item) -> Result<(), DataError>;
+    /// Fetches `item` now (waiting for it) unless it is here already. Items evicted before
+    /// may be freed meanwhile: a cache bounded in bytes must free what it evicts while a
+    /// long batch of paths goes on, not only when the batch ends.
+    ///
+    /// # Safety
+    /// The caller holds no reference it got from this data (no chunk or tile).
+    unsafe fn bring(&self, item: Item) -> Result<(), DataError>;
     /// Marks the passing of time for the least-recently-used order.
     fn tick(&self);
 }
