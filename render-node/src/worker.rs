@@ -244,7 +244,10 @@ impl Worker {
             // Coherent rays want many paths in flight, so once misses can wait (a full cache
             // that fetches on demand) as many rows are taken at once as fill a batch. One at a
             // time otherwise: rows not begun can be given back to idle nodes.
-            let rows_at_once = if self.job.coherent_rays && reader.may_defer() {
+            // (Until then the plain pixel loop: nothing would wait, so keeping paths in
+            // flight would only cost.)
+            let coherent = self.job.coherent_rays && reader.may_defer();
+            let rows_at_once = if coherent {
                 coherent_rows(rect.width, settings.spp)
             } else {
                 1
@@ -263,7 +266,7 @@ impl Worker {
                 width: rect.width,
                 height: rows.end - rows.start,
             };
-            if self.job.coherent_rays {
+            if coherent {
                 let mut coherence = CoherenceStats::default();
                 pixels = render_rect_coherent(
                     &tracer,
