@@ -133,7 +133,8 @@ pub struct ClusterStats {
     pub subscreens_split: u32,
     pub adaptive: bool,
     pub order: schedule::Order,
-    /// Whether render nodes traced memory-coherent rays (the totals count paths put aside).
+    /// Whether render nodes traced memory-coherent rays: asked for, with a demand cache
+    /// smaller than the scene (the totals count the paths put aside).
     pub coherent_rays: bool,
     pub link_model: String,
     pub time_scale: f64,
@@ -630,7 +631,10 @@ fn plan_job(
         dma_transport: config.dma_transport,
         cache_bytes,
         render_threads: config.render_threads,
-        coherent_rays: config.coherent_rays,
+        // Only a cache smaller than the scene can make a path wait.
+        coherent_rays: config.coherent_rays
+            && config.transfer == TransferMode::Demand
+            && cache_bytes < data_bytes,
     };
     Ok(JobPlan {
         job,
@@ -1241,7 +1245,7 @@ fn cluster_stats(
         subscreens_split: done.subscreens_split,
         adaptive: config.adaptive,
         order: config.order,
-        coherent_rays: config.coherent_rays,
+        coherent_rays: done.plan.job.coherent_rays,
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,

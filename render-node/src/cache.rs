@@ -628,12 +628,6 @@ impl Reader<'_> {
             .store(self.cache.epoch.load(Ordering::SeqCst), Ordering::SeqCst);
     }
 
-    /// Whether a miss may now be deferred: the cache fetches on demand and has had to
-    /// evict, so a further fetch may evict what other paths still need.
-    pub fn may_defer(&self) -> bool {
-        self.cache.source.is_some() && self.cache.full()
-    }
-
     /// How many items this thread fetched, and their bytes, since it last asked.
     pub fn take_fetched(&self) -> (u32, u64) {
         (self.fetches.replace(0), self.fetched_bytes.replace(0))
@@ -819,7 +813,6 @@ mod tests {
         let mut reader = cache.reader();
         reader.defer(true);
         // Nothing evicted yet: a miss is fetched at once (here: refused, having no source).
-        assert!(!reader.may_defer());
         assert!(matches!(reader.chunk(2), Err(DataError::Fetch(_))));
         reader.tick();
         assert!(reader.chunk(1).is_ok());

@@ -241,12 +241,10 @@ impl Worker {
         let settings = &self.job.settings;
         let mut pixels: Vec<[f32; 3]> = Vec::new();
         loop {
-            // Coherent rays want many paths in flight, so once misses can wait (a full cache
-            // that fetches on demand) as many rows are taken at once as fill a batch. One at a
-            // time otherwise: rows not begun can be given back to idle nodes.
-            // (Until then the plain pixel loop: nothing would wait, so keeping paths in
-            // flight would only cost.)
-            let coherent = self.job.coherent_rays && reader.may_defer();
+            // Coherent rays (the host asks for them only with a cache smaller than the scene)
+            // want many paths in flight: as many rows are taken at once as fill a batch. One
+            // at a time otherwise: rows not begun can be given back to idle nodes.
+            let coherent = self.job.coherent_rays;
             let rows_at_once = if coherent {
                 coherent_rows(rect.width, settings.spp)
             } else {
@@ -255,11 +253,6 @@ impl Worker {
             let Some(rows) = active.take(rows_at_once) else {
                 break;
             };
-            // Between batches of rows this thread holds nothing of the cache: evicted data
-            // it used may be freed.
-            reader.refresh();
-            let data = touched.watching(&*reader);
-            let tracer = Tracer::new(&self.scene, &data);
             let band = Rect {
                 x: rect.x,
                 y: rect.y + rows.start,
@@ -267,6 +260,11 @@ impl Worker {
                 height: rows.end - rows.start,
             };
             if coherent {
+                // Between batches of rows this thread holds nothing of the cache: evicted data
+                // it used may be freed (and within a batch, at each fetch for waiting paths).
+                reader.refresh();
+                let data = touched.watching(&*reader);
+                let tracer = Tracer::new(&self.scene, &data);
                 let mut coherence = CoherenceStats::default();
                 pixels = render_rect_coherent(
                     &tracer,
@@ -283,19 +281,23 @@ impl Worker {
                 self.stats
                     .deferred_fetches
                     .fetch_add(coherence.brings, Ordering::Relaxed);
+                add_rays(trace_stats, &tracer);
             } else {
                 pixels.clear();
                 for x in rect.x..rect.x + rect.width {
+                    // Between pixels this thread holds nothing of the cache: what it evicted
+                    // may be freed, so a small cache that evicts at every fetch keeps no more
+                    // than one pixel's worth waiting to be freed.
+                    reader.refresh();
                     reader.tick();
+                    let data = touched.watching(&*reader);
+                    let tracer = Tracer::new(&self.scene, &data);
                     let px =
                         render_pixel(&tracer, &self.job.camera, settings, x, band.y, trace_stats)?;
+                    add_rays(trace_stats, &tracer);
                     pixels.push(px);
                 }
             }
-            let t = tracer.stats();
-            trace_stats.camera_rays += t.camera_rays;
-            trace_stats.secondary_rays += t.secondary_rays;
-            trace_stats.shadow_rays += t.shadow_rays;
             for (row, line) in pixels.chunks(rect.width.max(1) as usize).enumerate() {
                 let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(line).into();
                 let msg = Message::Pixels {
@@ -319,6 +321,14 @@ impl Worker {
         }
         Ok(())
     }
+}
+
+/// Adds the rays `tracer` counted to `stats`.
+fn add_rays<D: renderer::SceneData>(stats: &mut TraceStats, tracer: &Tracer<D>) {
+    let t = tracer.stats();
+    stats.camera_rays += t.camera_rays;
+    stats.secondary_rays += t.secondary_rays;
+    stats.shadow_rays += t.shadow_rays;
 }
 
 /// Rows of `width` pixels at `spp` samples that fill one batch of coherent rays (at least one).
