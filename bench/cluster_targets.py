@@ -73,13 +73,16 @@ def main():
         ("spheres", "in-process", spheres + ["--in-process"]),
         ("spheres", "86 processes, cache 100%", spheres + ["--cache", "100"]),
         ("spheres", "86 processes, cache 5%", spheres + ["--cache", "5"]),
+        # The paper's way, for comparison: each miss fetched at once (no coherent rays).
+        ("spheres", "86 processes, cache 5%, coherent rays off",
+         spheres + ["--cache", "5", "--coherent-rays", "off"]),
         ("spheres", "86 processes, cache 100%, TCP only",
          spheres + ["--cache", "100", "--dma-transport", "tcp"]),
         ("cornell", "in-process", cornell + ["--in-process"]),
         ("cornell", "86 processes", cornell),
     ]
     if a.with_tcp_5:
-        configs.insert(4, ("spheres", "86 processes, cache 5%, TCP only",
+        configs.insert(5, ("spheres", "86 processes, cache 5%, TCP only",
                            spheres + ["--cache", "5", "--dma-transport", "tcp"]))
 
     results = {(s, n): [] for s, n, _ in configs}
