@@ -124,6 +124,16 @@ fn tiny_cluster_matches_in_every_mode() {
     let reference = dir.join("ref.pfm");
     let o = render(&[&["--in-process"][..], &size].concat(), &reference, None);
     assert!(o.status.success(), "{}", stderr(&o));
+    let small_cache = [
+        "--transfer",
+        "demand",
+        "--cache",
+        "8",
+        "--chunk-triangles",
+        "128",
+        "--subscreens",
+        "5",
+    ];
     let modes: Vec<Vec<&str>> = vec![
         vec!["--transfer", "batch", "--subscreens", "1"],
         vec!["--transfer", "batch", "--subscreens", "7"],
@@ -154,28 +164,8 @@ fn tiny_cluster_matches_in_every_mode() {
         ],
         // A cache of a few chunks: paths wait for what it lacks (coherent rays), or each
         // miss is fetched at once.
-        vec![
-            "--transfer",
-            "demand",
-            "--cache",
-            "8",
-            "--chunk-triangles",
-            "128",
-            "--subscreens",
-            "5",
-        ],
-        vec![
-            "--transfer",
-            "demand",
-            "--cache",
-            "8",
-            "--chunk-triangles",
-            "128",
-            "--subscreens",
-            "5",
-            "--coherent-rays",
-            "off",
-        ],
+        small_cache.to_vec(),
+        [&small_cache[..], &["--coherent-rays", "off"]].concat(),
         vec![
             "--transfer",
             "demand",

@@ -699,7 +699,7 @@ impl SceneData for Reader<'_> {
         if !p.is_null() {
             return Ok(self.hit(slot, p));
         }
-        if self.deferring.get() && self.cache.full() {
+        if self.defers() {
             return Err(DataError::Missing(Item::Chunk(id)));
         }
         self.fetch_chunk(id)
@@ -716,7 +716,7 @@ impl SceneData for Reader<'_> {
         if !p.is_null() {
             return Ok(self.hit(slot, p));
         }
-        if self.deferring.get() && self.cache.full() {
+        if self.defers() {
             return Err(DataError::Missing(Item::Tile(id)));
         }
         self.fetch_tile(id)
@@ -724,6 +724,12 @@ impl SceneData for Reader<'_> {
 }
 
 impl Reader<'_> {
+    /// Whether a miss is now answered with [`DataError::Missing`] instead of fetched.
+    #[inline(always)]
+    fn defers(&self) -> bool {
+        self.deferring.get() && self.cache.full()
+    }
+
     /// The miss path of a chunk: fetched (this thread waits), validated, inserted.
     #[inline(never)]
     fn fetch_chunk(&self, id: u32) -> Result<&Chunk, DataError> {

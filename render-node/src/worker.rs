@@ -15,7 +15,7 @@ use fabric::{Fabric, Route};
 use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
 use renderer::{
     SceneHeader,
-    render::{CoherenceStats, render_pixel, render_rect_coherent},
+    render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
     source::Touched,
     trace::{TraceStats, Tracer},
 };
@@ -268,7 +268,6 @@ impl Worker {
                 let mut coherence = CoherenceStats::default();
                 pixels = render_rect_coherent(
                     &tracer,
-                    &*reader,
                     &self.job.camera,
                     settings,
                     band,
@@ -281,7 +280,7 @@ impl Worker {
                 self.stats
                     .deferred_fetches
                     .fetch_add(coherence.brings, Ordering::Relaxed);
-                add_rays(trace_stats, &tracer);
+                trace_stats.add(&tracer.stats());
             } else {
                 pixels.clear();
                 for x in rect.x..rect.x + rect.width {
@@ -294,7 +293,7 @@ impl Worker {
                     let tracer = Tracer::new(&self.scene, &data);
                     let px =
                         render_pixel(&tracer, &self.job.camera, settings, x, band.y, trace_stats)?;
-                    add_rays(trace_stats, &tracer);
+                    trace_stats.add(&tracer.stats());
                     pixels.push(px);
                 }
             }
@@ -321,20 +320,6 @@ impl Worker {
         }
         Ok(())
     }
-}
-
-/// Adds the rays `tracer` counted to `stats`.
-fn add_rays<D: renderer::SceneData>(stats: &mut TraceStats, tracer: &Tracer<D>) {
-    let t = tracer.stats();
-    stats.camera_rays += t.camera_rays;
-    stats.secondary_rays += t.secondary_rays;
-    stats.shadow_rays += t.shadow_rays;
-}
-
-/// Rows of `width` pixels at `spp` samples that fill one batch of coherent rays (at least one).
-fn coherent_rows(width: u32, spp: u32) -> u32 {
-    let per_row = (width.max(1) as u64) * spp.max(1) as u64;
-    (renderer::render::PATHS_IN_FLIGHT as u64 / per_row).clamp(1, u32::MAX as u64) as u32
 }
 
 /// What subscreen `id` cost this thread: its `counts`, the ids its rays touched,

@@ -211,7 +211,6 @@ pub struct PathState {
     /// mirror or glass bounce came by a caustic path.
     scattered_rough: bool,
     bounce: u32,
-    done: bool,
     /// The sample's key for draws not on the sampler's dimensions (alpha).
     sample: SampleKey,
 }
@@ -227,7 +226,6 @@ impl PathState {
             medium: None,
             scattered_rough: false,
             bounce: 0,
-            done: false,
             sample: sampler.key(),
         }
     }
@@ -237,12 +235,9 @@ impl PathState {
         self.l
     }
 
-    pub fn is_done(&self) -> bool {
-        self.done
-    }
-
-    /// Follows the path through one more hit; false once it has ended. On an error the
-    /// state may be half updated: keep a copy to run the bounce again.
+    /// Follows the path through one more hit; false once it has ended (then it is not to be
+    /// stepped again). On an error the state may be half updated: keep a copy to run the
+    /// bounce again.
     #[inline(always)]
     pub fn step<D: SceneData>(
         &mut self,
@@ -251,15 +246,12 @@ impl PathState {
         max_depth: u32,
         clamp: f32,
     ) -> Result<bool, DataError> {
-        if self.done || self.bounce >= max_depth {
-            self.done = true;
+        if self.bounce >= max_depth {
             return Ok(false);
         }
-        let bounce = self.bounce;
         let more = self.bounce_once(t, sampler, clamp)?;
-        self.bounce = bounce + 1;
-        self.done = !more || self.bounce >= max_depth;
-        Ok(!self.done)
+        self.bounce += 1;
+        Ok(more && self.bounce < max_depth)
     }
 
     #[inline(always)]

@@ -196,6 +196,22 @@ impl<D: SceneData> SceneData for Noting<'_, D> {
     }
 }
 
+/// Noting data defers as the data it watches does (an item it lacks was noted when asked).
+impl<D: SceneData + Deferral> Deferral for Noting<'_, D> {
+    fn defer(&self, on: bool) {
+        self.data.defer(on);
+    }
+
+    unsafe fn bring(&self, item: Item) -> Result<(), DataError> {
+        // SAFETY: the caller's promise is passed on.
+        unsafe { self.data.bring(item) }
+    }
+
+    fn tick(&self) {
+        self.data.tick();
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

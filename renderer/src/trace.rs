@@ -88,11 +88,12 @@ pub struct Tracer<'a, D: SceneData> {
     pub memo: Cell<Option<Box<QueryMemo>>>,
 }
 
-/// What a path's ray queries found before they stopped for missing data.
+/// What a path's ray queries found before they stopped for missing data, each with the ray
+/// it is of.
 #[derive(Debug, Default)]
 pub struct QueryMemo {
-    closest: Option<ClosestMemo>,
-    occluded: Option<OccludedMemo>,
+    closest: Option<(RayBits, ClosestFound)>,
+    occluded: Option<(RayBits, Searched)>,
 }
 
 /// A ray as bits, to know a memo is of this very ray.
@@ -103,35 +104,13 @@ fn ray_bits(r: &Ray) -> RayBits {
     [o.x, o.y, o.z, d.x, d.y, d.z, r.tmax].map(f32::to_bits)
 }
 
-trait RayMemo {
-    fn ray(&self) -> RayBits;
-}
-
-#[derive(Debug)]
-struct ClosestMemo {
-    ray: RayBits,
+/// How far a closest-hit query got.
+#[derive(Clone, Copy, Debug)]
+struct ClosestFound {
     best: Closest,
     searched: Searched,
     /// Every chunk was searched: only the best hit's chunk is still to be had.
     complete: bool,
-}
-
-impl RayMemo for ClosestMemo {
-    fn ray(&self) -> RayBits {
-        self.ray
-    }
-}
-
-#[derive(Debug)]
-struct OccludedMemo {
-    ray: RayBits,
-    searched: Searched,
-}
-
-impl RayMemo for OccludedMemo {
-    fn ray(&self) -> RayBits {
-        self.ray
-    }
 }
 
 /// Chunks a query has searched, the first few of them: searching one again is only work
@@ -230,98 +209,64 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     /// them in.
     ///
     /// Where the data says a chunk is missing ([`DataError::Missing`], while deferring), the
-    /// walk goes on through the others, and the answer is that missing chunk (the nearest
-    /// that could still hold a nearer hit); what was searched is kept in [`Tracer::memo`],
-    /// so that asking again for the same ray, once the chunk is here, searches only what is
-    /// left. Searching a chunk again would give the same answer (ties are broken by index),
-    /// so the memo only saves work and the need to have every chunk here at once.
+    /// walk goes on through the others, and the answer is the nearest missing chunk that
+    /// could still hold a nearer hit (the top-level walk, run again within the best distance
+    /// found, says which); what was searched is kept in [`Tracer::memo`], so that asking
+    /// again for the same ray, once the chunk is here, searches only what is left. Searching
+    /// a chunk again would give the same answer (ties are broken by index), so the memo only
+    /// saves work and the need to have every chunk here at once.
     pub fn closest(
         &self,
         ray: &Ray,
         key: AlphaKey,
     ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
         let q = RayQuery::new(ray);
-        let memo = if D::MAY_DEFER {
-            self.memo_of(ray, |m| &mut m.closest)
-        } else {
-            None
-        };
-        let (mut best, mut searched, complete) = match memo {
-            Some(m) => (m.best, m.searched, m.complete),
-            None => (Closest::new(ray.tmax), Searched::default(), false),
-        };
+        let found = self.memo_of(ray, |m| &mut m.closest);
+        let ClosestFound {
+            mut best,
+            mut searched,
+            complete,
+        } = found.unwrap_or(ClosestFound {
+            best: Closest::new(ray.tmax),
+            searched: Searched::default(),
+            complete: false,
+        });
         let mut tmax = best.t;
         let mut best_chunk: Option<D::ChunkRef<'a>> = None;
-        let mut error = None;
-        let mut missing: Vec<u32> = Vec::new();
-        if !complete {
-            accel::walk::<true>(
-                &self.scene.tlas.accel().nodes,
+        let missing = Cell::new(None);
+        let mut search = || {
+            self.search_closest(
                 &q,
+                key,
                 &mut tmax,
-                |_| {},
-                |chunk_id, tmax| {
-                    if D::MAY_DEFER && searched.holds(chunk_id) {
-                        return Visit::Continue;
-                    }
-                    let chunk = match self.data.chunk(chunk_id) {
-                        Ok(c) => c,
-                        Err(DataError::Missing(_)) => {
-                            missing.push(chunk_id);
-                            return Visit::Continue;
-                        }
-                        Err(e) => {
-                            error = Some(e);
-                            return Visit::Stop;
-                        }
-                    };
-                    let kind = self.surface_kind(chunk_id);
-                    let improved = if kind == SurfaceKind::Solid {
-                        chunk.accel().closest(&q, chunk_id, &mut best, |_, _| true)
-                    } else {
-                        chunk.accel().closest(&q, chunk_id, &mut best, |tri, hit| {
-                            match self.passes_through(&chunk, kind, &q, tri, hit, key) {
-                                Ok(pass) => !pass,
-                                Err(e) => {
-                                    error = Some(e);
-                                    false
-                                }
-                            }
-                        })
-                    };
-                    if improved {
-                        *tmax = best.t;
-                        best_chunk = Some(chunk);
-                    }
-                    if error.is_some() {
-                        Visit::Stop
-                    } else {
-                        if D::MAY_DEFER {
-                            searched.add(chunk_id);
-                        }
-                        Visit::Continue
-                    }
-                },
-            );
-        }
-        if let Some(e) = error {
-            if matches!(e, DataError::Missing(_)) {
-                self.keep_closest(ray, best, searched, false);
+                &mut best,
+                &mut searched,
+                &mut best_chunk,
+                &missing,
+            )
+        };
+        let mut failure = None;
+        if !complete {
+            failure = search();
+            // A chunk met missing matters only if it may hold a hit nearer than the best
+            // found since: walked again within that distance, the first missing is the one.
+            if D::MAY_DEFER && failure.is_none() && missing.take().is_some() {
+                failure = search();
             }
-            return Err(e);
         }
-        // A missing chunk matters if a hit in it could still be nearer than the best.
-        if !missing.is_empty()
-            && let Some(&wanted) = missing
-                .iter()
-                .filter_map(|&c| self.chunk_entry(ray, c).map(|t| (t, c)))
-                .filter(|&(t, _)| t <= best.t)
-                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
-                .map(|(_, c)| c)
-                .as_ref()
+        let found = |complete| ClosestFound {
+            best,
+            searched,
+            complete,
+        };
+        if let Some(e) = failure {
+            return Err(self.waits(ray, e, |m| &mut m.closest, found(false)));
+        }
+        if D::MAY_DEFER
+            && let Some(c) = missing.take()
         {
-            self.keep_closest(ray, best, searched, false);
-            return Err(DataError::Missing(Item::Chunk(wanted)));
+            let e = DataError::Missing(Item::Chunk(c));
+            return Err(self.waits(ray, e, |m| &mut m.closest, found(false)));
         }
         let Some(tri_hit) = best.hit else {
             return Ok(None);
@@ -329,15 +274,10 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         let chunk = match best_chunk {
             Some(c) => c,
             // Found before the path waited: the chunk is asked for again.
-            None => match self.data.chunk(best.chunk) {
-                Ok(c) => c,
-                Err(e) => {
-                    if matches!(e, DataError::Missing(_)) {
-                        self.keep_closest(ray, best, searched, true);
-                    }
-                    return Err(e);
-                }
-            },
+            None => self
+                .data
+                .chunk(best.chunk)
+                .map_err(|e| self.waits(ray, e, |m| &mut m.closest, found(true)))?,
         };
         Ok(Some(Hit {
             chunk,
@@ -346,56 +286,123 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         }))
     }
 
-    /// Where the ray may enter chunk `id`'s box, a little early (None if it misses it by
-    /// a clear margin): whether a missing chunk can matter. Erring early only makes a path
-    /// wait for a chunk it turns out not to need.
-    fn chunk_entry(&self, ray: &Ray, id: u32) -> Option<f32> {
-        let Some(info) = self.scene.chunks.get(id as usize) else {
-            return Some(0.0);
-        };
-        let (lo, hi) = (info.bounds_min.to_array(), info.bounds_max.to_array());
-        let (o, d) = (ray.origin.to_array(), ray.dir.to_array());
-        let (mut near, mut far) = (0.0f32, f32::INFINITY);
-        for k in 0..3 {
-            let pad = 1e-4 * (hi[k] - lo[k]).abs().max(lo[k].abs().max(hi[k].abs()));
-            let (a, b) = (lo[k] - pad, hi[k] + pad);
-            if d[k] == 0.0 {
-                if o[k] < a || o[k] > b {
-                    return None;
+    /// One walk of the top-level tree for [`Tracer::closest`], within `tmax`: updates
+    /// `best` and the chunk it lies in, skips chunks `searched` before, notes them as it
+    /// searches and notes the first chunk that is missing; the error that stopped it.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn search_closest(
+        &self,
+        q: &RayQuery,
+        key: AlphaKey,
+        tmax: &mut f32,
+        best: &mut Closest,
+        searched: &mut Searched,
+        best_chunk: &mut Option<D::ChunkRef<'a>>,
+        missing: &Cell<Option<u32>>,
+    ) -> Option<DataError> {
+        let mut error = None;
+        accel::walk::<true>(
+            &self.scene.tlas.accel().nodes,
+            q,
+            tmax,
+            |_| {},
+            |chunk_id, tmax| {
+                let chunk = match self.reach(chunk_id, searched, missing) {
+                    Ok(Some(c)) => c,
+                    Ok(None) => return Visit::Continue,
+                    Err(e) => {
+                        error = Some(e);
+                        return Visit::Stop;
+                    }
+                };
+                let kind = self.surface_kind(chunk_id);
+                let improved = if kind == SurfaceKind::Solid {
+                    chunk.accel().closest(q, chunk_id, best, |_, _| true)
+                } else {
+                    chunk.accel().closest(q, chunk_id, best, |tri, hit| {
+                        match self.passes_through(&chunk, kind, q, tri, hit, key) {
+                            Ok(pass) => !pass,
+                            Err(e) => {
+                                error = Some(e);
+                                false
+                            }
+                        }
+                    })
+                };
+                if improved {
+                    *tmax = best.t;
+                    *best_chunk = Some(chunk);
                 }
-                continue;
-            }
-            let (t0, t1) = ((a - o[k]) / d[k], (b - o[k]) / d[k]);
-            near = near.max(t0.min(t1));
-            far = far.min(t0.max(t1));
-        }
-        if !(near.is_finite() || near == f32::INFINITY) {
-            return Some(0.0);
-        }
-        (near <= far * (1.0 + 1e-4)).then_some(near * (1.0 - 1e-4))
+                if error.is_some() {
+                    Visit::Stop
+                } else {
+                    if D::MAY_DEFER {
+                        searched.add(chunk_id);
+                    }
+                    Visit::Continue
+                }
+            },
+        );
+        error
     }
 
-    /// The memo of `ray`'s query of one kind, taken out, if one was kept for this very ray.
-    fn memo_of<M: RayMemo>(
+    /// The chunk a top-level walk reaches: `None` to go on without it, because the query
+    /// searched it before it waited, or because it is missing (the first such is noted in
+    /// `missing`, while deferring); an error that ends the query.
+    #[inline(always)]
+    fn reach(
+        &self,
+        chunk_id: u32,
+        searched: &Searched,
+        missing: &Cell<Option<u32>>,
+    ) -> Result<Option<D::ChunkRef<'a>>, DataError> {
+        if D::MAY_DEFER && searched.holds(chunk_id) {
+            return Ok(None);
+        }
+        match self.data.chunk(chunk_id) {
+            Ok(c) => Ok(Some(c)),
+            Err(DataError::Missing(_)) => {
+                missing.set(missing.get().or(Some(chunk_id)));
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// The memo of `ray`'s query of one kind, taken out, if one was kept for this very ray
+    /// (never, for data that cannot defer).
+    fn memo_of<M>(
         &self,
         ray: &Ray,
-        part: impl FnOnce(&mut QueryMemo) -> &mut Option<M>,
+        part: impl FnOnce(&mut QueryMemo) -> &mut Option<(RayBits, M)>,
     ) -> Option<M> {
+        if !D::MAY_DEFER {
+            return None;
+        }
         let mut memo = self.memo.take()?;
-        let m = part(&mut memo).take();
+        let kept = part(&mut memo).take();
         self.memo.set(Some(memo));
-        m.filter(|m| m.ray() == ray_bits(ray))
+        kept.filter(|(bits, _)| *bits == ray_bits(ray))
+            .map(|(_, m)| m)
     }
 
-    fn keep_closest(&self, ray: &Ray, best: Closest, searched: Searched, complete: bool) {
-        let mut memo = self.memo.take().unwrap_or_default();
-        memo.closest = Some(ClosestMemo {
-            ray: ray_bits(ray),
-            best,
-            searched,
-            complete,
-        });
-        self.memo.set(Some(memo));
+    /// `error`, which ends a query of one kind; if it is a wait for data, what the query
+    /// `found` is kept for when it is asked again for `ray`.
+    #[cold]
+    fn waits<M>(
+        &self,
+        ray: &Ray,
+        error: DataError,
+        part: impl FnOnce(&mut QueryMemo) -> &mut Option<(RayBits, M)>,
+        found: M,
+    ) -> DataError {
+        if matches!(error, DataError::Missing(_)) {
+            let mut memo = self.memo.take().unwrap_or_default();
+            *part(&mut memo) = Some((ray_bits(ray), found));
+            self.memo.set(Some(memo));
+        }
+        error
     }
 
     /// Whether anything blocks the ray within (0, tmax). Missing chunks are handled as in
@@ -404,31 +411,20 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     pub fn occluded(&self, ray: &Ray, key: AlphaKey) -> Result<bool, DataError> {
         self.shadow_rays.set(self.shadow_rays.get() + 1);
         let q = RayQuery::new(ray);
-        let mut searched = if D::MAY_DEFER {
-            self.memo_of(ray, |m| &mut m.occluded)
-                .map_or_else(Searched::default, |m| m.searched)
-        } else {
-            Searched::default()
-        };
+        let mut searched = self.memo_of(ray, |m| &mut m.occluded).unwrap_or_default();
         let mut tmax = ray.tmax;
         let mut blocked = false;
         let mut error = None;
-        let mut missing = None;
+        let missing = Cell::new(None);
         accel::walk::<false>(
             &self.scene.tlas.accel().nodes,
             &q,
             &mut tmax,
             |_| {},
             |chunk_id, tmax| {
-                if D::MAY_DEFER && searched.holds(chunk_id) {
-                    return Visit::Continue;
-                }
-                let chunk = match self.data.chunk(chunk_id) {
-                    Ok(c) => c,
-                    Err(DataError::Missing(_)) => {
-                        missing = missing.or(Some(chunk_id));
-                        return Visit::Continue;
-                    }
+                let chunk = match self.reach(chunk_id, &searched, &missing) {
+                    Ok(Some(c)) => c,
+                    Ok(None) => return Visit::Continue,
                     Err(e) => {
                         error = Some(e);
                         return Visit::Stop;
@@ -465,21 +461,16 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         if blocked {
             return Ok(true);
         }
-        let error = error.or(missing.map(|c| DataError::Missing(Item::Chunk(c))));
-        match error {
-            Some(e) => {
-                if matches!(e, DataError::Missing(_)) {
-                    let mut memo = self.memo.take().unwrap_or_default();
-                    memo.occluded = Some(OccludedMemo {
-                        ray: ray_bits(ray),
-                        searched,
-                    });
-                    self.memo.set(Some(memo));
-                }
-                Err(e)
-            }
-            None => Ok(false),
+        if let Some(e) = error {
+            return Err(self.waits(ray, e, |m| &mut m.occluded, searched));
         }
+        if D::MAY_DEFER
+            && let Some(c) = missing.get()
+        {
+            let e = DataError::Missing(Item::Chunk(c));
+            return Err(self.waits(ray, e, |m| &mut m.occluded, searched));
+        }
+        Ok(false)
     }
 
     pub fn count_camera_ray(&self) {
