@@ -1,12 +1,13 @@
 //! Reading and writing whole frames on a byte stream.
 //!
 //! The reader checks the header before allocating anything, reads the raw data part
-//! straight into aligned words, and gives a started frame a deadline to finish arriving, so a
+//! straight into aligned words (small frames and the heads of big ones come through a buffer,
+//! so a request costs one read from the socket rather than four), and gives a started frame a deadline to finish arriving, so a
 //! slow or silent peer cannot hold memory or a task forever.
 
 use std::time::Duration;
 
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, BufReader};
 
 use crate::frame::{Frame, FrameHeader, HEADER_LEN, HeaderError};
 
@@ -26,8 +27,12 @@ pub enum ReadError {
     Io(#[from] std::io::Error),
 }
 
+/// Bytes read ahead from the stream: many small frames, or a big frame's head. A data part
+/// longer than this is read straight into its words.
+const READ_AHEAD: usize = 64 << 10;
+
 pub struct FrameReader<R> {
-    inner: R,
+    inner: BufReader<R>,
     /// Time a frame may take to arrive once its first byte has.
     pub frame_timeout: Duration,
     /// Time the peer may stay silent between frames (`None`: forever). Peers that send
@@ -40,7 +45,7 @@ pub struct FrameReader<R> {
 impl<R: AsyncRead + Unpin> FrameReader<R> {
     pub fn new(inner: R) -> FrameReader<R> {
         FrameReader {
-            inner,
+            inner: BufReader::with_capacity(READ_AHEAD, inner),
             frame_timeout: Duration::from_secs(30),
             idle_deadline: None,
             bytes_read: 0,
@@ -77,10 +82,6 @@ impl<R: AsyncRead + Unpin> FrameReader<R> {
         read_exact(&mut self.inner, bytemuck::cast_slice_mut(&mut data)).await?;
         self.bytes_read += header.wire_len() as u64;
         Ok(Frame { header, meta, data })
-    }
-
-    pub fn into_inner(self) -> R {
-        self.inner
     }
 }
 
