@@ -99,7 +99,16 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     assert!(t["deferred_fetches"].as_u64().unwrap() > 0, "{t}");
     let fetched =
         t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap();
-    let data_bytes = v["cache_bytes"].as_f64().unwrap() / 0.05;
+    // What batch transfer would move: every chunk's and tile's words to each render node.
+    let data_bytes: f64 = ["chunk_bytes", "tile_bytes"]
+        .iter()
+        .flat_map(|k| v[k].as_array().unwrap())
+        .map(|b| b.as_f64().unwrap())
+        .sum();
+    assert!(
+        v["cache_bytes"].as_f64().unwrap() > 0.05 * data_bytes,
+        "the budget counts chunks ready to walk, more than their words"
+    );
     assert!(
         (fetched as f64) < 80.0 * data_bytes * 0.25,
         "fetched {fetched} bytes; batch would move {} ",

@@ -589,15 +589,11 @@ fn plan_job(
 ) -> Result<JobPlan, ClusterRenderError> {
     let rc = &config.render;
     let (settings, camera) = crate::inprocess::camera_and_settings(rc, scene)?;
-    let data_bytes =
-        scene.shape_bytes + scene.tile_count as u64 * renderer::texture::TILE_TEXELS as u64 * 4;
+    // A cache holds chunks ready to walk, so its percentages are of what the scene takes in
+    // that form (words and walking forms), not of the bytes that cross the links.
+    let data_bytes = scene.memory_bytes();
     let cache_bytes = (config.cache_percent / 100.0 * data_bytes as f64).ceil() as u64;
-    let largest = scene
-        .chunks
-        .iter()
-        .map(|c| c.byte_len as u64)
-        .max()
-        .unwrap_or(0);
+    let largest = scene.largest_chunk_memory();
     if config.transfer == TransferMode::Demand && cache_bytes < largest {
         return Err(ClusterRenderError::CacheTooSmall {
             percent: config.cache_percent,

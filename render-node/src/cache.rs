@@ -1,5 +1,7 @@
 //! The shape data cache (the paper's figure 1.8): chunks and texture tiles a render node has
 //! fetched from its fork node, within a byte budget, the least recently used evicted first.
+//! The budget counts what an item takes once usable: a chunk's words and its walking form
+//! (which is larger than the words), so that the cache is the memory it claims to be.
 //!
 //! Rendering threads read it through a [`Reader`], the renderer's [`SceneData`] on a render
 //! node. A hit is what the renderer does most, so it costs one atomic load (the slot's
@@ -249,7 +251,7 @@ impl DemandCache {
         match id {
             DataId::Chunk(c) => {
                 let chunk = validate_chunk(&self.rules, c, Fetched::Words(words))?;
-                let bytes = chunk.byte_len() as u64;
+                let bytes = chunk.memory_bytes() as u64;
                 self.insert(&self.chunks, c, chunk, bytes, false)?;
             }
             DataId::Tile(t) => {
@@ -739,7 +741,7 @@ impl Reader<'_> {
             Fetched::InPlace { .. } => self.cache.in_place(id, fetched)?,
             Fetched::Words(_) => validate_chunk(&self.cache.rules, id, fetched)?,
         };
-        let bytes = chunk.byte_len() as u64;
+        let bytes = chunk.memory_bytes() as u64;
         let p = self
             .cache
             .insert(&self.cache.chunks, id, chunk, bytes, true)?;
@@ -802,6 +804,13 @@ mod tests {
         build_chunk(&m, &all, id, 0).unwrap().words().into()
     }
 
+    /// What a cache charges for one of the test chunks: its words and its walking form.
+    fn memory_size() -> u64 {
+        let c = validate_chunk(&rules(1), 0, Fetched::Words(chunk(0, 4))).unwrap();
+        assert!(c.memory_bytes() > c.byte_len(), "the walking form is counted too");
+        c.memory_bytes() as u64
+    }
+
     fn rules(chunks: usize) -> ChunkRules {
         ChunkRules::new(vec![(0, 4); chunks], 0)
     }
@@ -812,7 +821,7 @@ mod tests {
 
     #[test]
     fn a_deferring_reader_says_what_it_lacks_only_once_the_cache_has_evicted() {
-        let size = chunk(0, 4).len() as u64 * 4;
+        let size = memory_size();
         let cache = DemandCache::new(rules(3), 0, size * 2, None);
         cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
         cache.preload(DataId::Chunk(1), chunk(1, 4)).unwrap();
@@ -848,7 +857,7 @@ mod tests {
 
     #[test]
     fn evicts_least_recently_used_within_budget() {
-        let size = chunk(0, 4).len() as u64 * 4;
+        let size = memory_size();
         let cache = DemandCache::new(rules(3), 0, size * 2, None);
         cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
         let mut reader = cache.reader();
@@ -869,7 +878,7 @@ mod tests {
 
     #[test]
     fn an_evicted_chunk_lives_until_its_readers_move_on() {
-        let size = chunk(0, 4).len() as u64 * 4;
+        let size = memory_size();
         let cache = DemandCache::new(rules(2), 0, size, None);
         cache.preload(DataId::Chunk(0), chunk(0, 4)).unwrap();
         let mut reader = cache.reader();

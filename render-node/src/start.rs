@@ -68,12 +68,7 @@ pub(crate) fn decide(r: &Render, fork: Option<NodeId>) -> Result<Option<Ready>, 
         TransferMode::Demand => {
             // A chunk larger than the whole cache could never be fetched: the render would
             // hang on it, so it is refused before it starts.
-            let largest = scene
-                .chunks
-                .iter()
-                .map(|c| c.byte_len as u64)
-                .max()
-                .unwrap_or(0);
+            let largest = scene.largest_chunk_memory();
             if largest > job.cache_bytes {
                 return Err(StartError::CacheTooSmall {
                     budget: job.cache_bytes,
@@ -197,12 +192,7 @@ mod tests {
     }
 
     fn largest_chunk(scene: &SceneHeader) -> u64 {
-        scene
-            .chunks
-            .iter()
-            .map(|c| c.byte_len as u64)
-            .max()
-            .unwrap()
+        scene.largest_chunk_memory()
     }
 
     fn waits(r: &Render, fork: Option<NodeId>) -> bool {

@@ -290,6 +290,12 @@ impl Chunk {
         self.words.len() * 4
     }
 
+    /// Bytes this chunk takes once it can be walked: its words and its walking form, wherever
+    /// they lie (a cache counts a chunk walked in a card's shared memory as one it copied).
+    pub fn memory_bytes(&self) -> usize {
+        self.byte_len() + self.accel.byte_len()
+    }
+
     pub fn header(&self) -> &ChunkHeader {
         bytemuck::from_bytes(bytemuck::cast_slice(&self.words[..HEADER_WORDS]))
     }

@@ -139,7 +139,11 @@ pub struct ChunkInfo {
     pub bounds_min: Vec3,
     pub bounds_max: Vec3,
     pub tri_count: u32,
+    /// Bytes of the chunk's words: what crosses a link when it is fetched.
     pub byte_len: u32,
+    /// Bytes it takes once it can be walked, its words and its walking form together: what
+    /// a render node's cache budget counts ([`crate::chunk::Chunk::memory_bytes`]).
+    pub memory_bytes: u32,
     /// The material of every triangle of the chunk.
     pub material: u32,
 }
@@ -291,12 +295,28 @@ pub struct SceneHeader {
     pub tlas: Tlas,
     pub bounds_min: Vec3,
     pub bounds_max: Vec3,
-    /// Total bytes of all chunks, the base of shape-cache percentages.
+    /// Total bytes of all chunks' words (what a render node would fetch to hold them all).
     pub shape_bytes: u64,
     pub tile_count: u32,
 }
 
 impl SceneHeader {
+    /// Bytes the whole scene takes on a render node once every chunk and tile is ready to
+    /// use: the base of cache percentages, so that a cache of 100% holds everything.
+    pub fn memory_bytes(&self) -> u64 {
+        self.chunks.iter().map(|c| c.memory_bytes as u64).sum::<u64>()
+            + self.tile_count as u64 * crate::texture::TILE_TEXELS as u64 * 4
+    }
+
+    /// The most one chunk takes once ready to walk: a cache must hold at least this much.
+    pub fn largest_chunk_memory(&self) -> u64 {
+        self.chunks
+            .iter()
+            .map(|c| c.memory_bytes as u64)
+            .max()
+            .unwrap_or(0)
+    }
+
     /// The punctual lights: the prefix of `lights` that are points, spots and suns.
     pub fn punctual_lights(&self) -> &[Light] {
         let n = self.lights.iter().take_while(|l| l.is_delta()).count();
@@ -568,6 +588,7 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryDa
                 bounds_max: Vec3::from(h.bounds_max),
                 tri_count: h.tri_count,
                 byte_len: c.byte_len() as u32,
+                memory_bytes: c.memory_bytes() as u32,
                 material: h.material,
             }
         })
