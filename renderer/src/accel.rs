@@ -225,7 +225,14 @@ fn transcode(
 impl Bvh8 {
     /// A chunk's tree, from its validated wire nodes and its triangles in leaf order.
     pub fn for_chunk(wire: &[WideNode], positions: &[[f32; 9]]) -> Bvh8 {
-        let mut leaves = Vec::new();
+        // Sized exactly at once: a render node transcodes every chunk it fetches, and blocks
+        // grown by doubling left holes in its heap that kept its memory above its budget.
+        let leaf_count = wire
+            .iter()
+            .flatten()
+            .filter(|&&r| matches!(bvh::child(r), Child::Leaf { .. }))
+            .count();
+        let mut leaves = Vec::with_capacity(leaf_count);
         let nodes = transcode(wire, |first, count, _| {
             let start = first as usize;
             let tris = positions.get(start..start + count.min(4) as usize)?;
