@@ -93,6 +93,20 @@ fn keep_freed_blocks() {
     }
 }
 
+/// Makes a render node's threads share one heap. Its rendering thread frees the chunks its
+/// network thread received and allocates their walking forms; with a heap per thread, the
+/// holes each kept resident held a render node at cache 5% over TCP about 1 MiB further above
+/// its budget (MetalRoughSpheresNoTextures, 320x240, 64 spp: own memory at most 15.9 MiB,
+/// 14.8 with one heap, for a budget of 6.5 MiB). Its threads allocate little while
+/// rendering, so they do not queue for the heap.
+fn one_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `mallopt` only sets allocator parameters.
+    unsafe {
+        libc::mallopt(libc::M_ARENA_MAX, 1);
+    }
+}
+
 /// Starts logging to stderr at `filter` (a level or RUST_LOG syntax).
 pub fn init_logging(filter: &str) {
     let filter = tracing_subscriber::EnvFilter::try_new(filter)
@@ -243,6 +257,9 @@ pub fn node_binary_main(role: protocol::Role, name: &'static str, about: &'stati
 /// `magg-render-node` and `magg-host fork-node|render-node` all run this.
 pub fn node_main(role: protocol::Role, args: &NodeArgs) -> Result<()> {
     args.arm_parent_death();
+    if role == protocol::Role::Render {
+        one_heap();
+    }
     let join = args.join_config(role)?;
     match role {
         protocol::Role::Fork => run_node(fork_node::run(fork_node::Config { join })),

@@ -29,7 +29,7 @@ pub enum ReadError {
 
 /// Bytes read ahead from the stream: many small frames, or a big frame's head. A data part
 /// longer than this is read straight into its words.
-const READ_AHEAD: usize = 64 << 10;
+const READ_AHEAD: usize = 16 << 10;
 
 pub struct FrameReader<R> {
     inner: BufReader<R>,

@@ -291,7 +291,8 @@ pub fn render_rect_coherent<D: SceneData + Deferral>(
     let mut first = 0;
     while first < settings.spp && stopped.iter().any(|s| !s) {
         let end = settings.spp.min(first.saturating_add(per_round));
-        let mut flights = Vec::new();
+        let live = stopped.iter().filter(|s| !**s).count();
+        let mut flights = Vec::with_capacity(live * (end - first) as usize);
         for (pixel, &(x, y)) in coords.iter().enumerate() {
             if stopped[pixel] {
                 continue;
