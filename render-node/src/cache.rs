@@ -807,7 +807,10 @@ mod tests {
     /// What a cache charges for one of the test chunks: its words and its walking form.
     fn memory_size() -> u64 {
         let c = validate_chunk(&rules(1), 0, Fetched::Words(chunk(0, 4))).unwrap();
-        assert!(c.memory_bytes() > c.byte_len(), "the walking form is counted too");
+        assert!(
+            c.memory_bytes() > c.byte_len(),
+            "the walking form is counted too"
+        );
         c.memory_bytes() as u64
     }
 

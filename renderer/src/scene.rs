@@ -304,7 +304,10 @@ impl SceneHeader {
     /// Bytes the whole scene takes on a render node once every chunk and tile is ready to
     /// use: the base of cache percentages, so that a cache of 100% holds everything.
     pub fn memory_bytes(&self) -> u64 {
-        self.chunks.iter().map(|c| c.memory_bytes as u64).sum::<u64>()
+        self.chunks
+            .iter()
+            .map(|c| c.memory_bytes as u64)
+            .sum::<u64>()
             + self.tile_count as u64 * crate::texture::TILE_TEXELS as u64 * 4
     }
 
