@@ -7,7 +7,7 @@
 
 use std::time::Duration;
 
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, BufReader};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, BufReader, BufWriter};
 
 use crate::frame::{Frame, FrameHeader, HEADER_LEN, HeaderError};
 
@@ -93,36 +93,49 @@ async fn read_exact<R: AsyncRead + Unpin>(r: &mut R, buf: &mut [u8]) -> Result<(
     }
 }
 
-pub struct FrameWriter<W> {
-    inner: W,
+/// Bytes of small frames gathered before they go to the stream together. A data part this
+/// long or longer goes to the stream straight from the frame.
+const WRITE_BEHIND: usize = 32 << 10;
+
+/// Writes frames to a byte stream. Frames [`put`](FrameWriter::put) one after another are
+/// gathered and reach the stream at the next [`flush`](FrameWriter::flush): on loopback each
+/// write costs the sender the receiver's side of the stack as well, and a render node sending
+/// a pixel row wrote twice (head, then data).
+pub struct FrameWriter<W: AsyncWrite> {
+    inner: BufWriter<W>,
     pub bytes_written: u64,
 }
 
 impl<W: AsyncWrite + Unpin> FrameWriter<W> {
     pub fn new(inner: W) -> FrameWriter<W> {
         FrameWriter {
-            inner,
+            inner: BufWriter::with_capacity(WRITE_BEHIND, inner),
             bytes_written: 0,
         }
     }
 
+    /// Writes `frame` and sends everything gathered.
     pub async fn write(&mut self, frame: &Frame) -> std::io::Result<()> {
-        let mut head = Vec::with_capacity(HEADER_LEN + frame.meta.len());
-        head.extend_from_slice(&frame.header.encode());
-        head.extend_from_slice(&frame.meta);
-        self.inner.write_all(&head).await?;
+        self.put(frame).await?;
+        self.flush().await
+    }
+
+    /// Adds `frame` to what goes out at the next flush (a long data part may go at once).
+    pub async fn put(&mut self, frame: &Frame) -> std::io::Result<()> {
+        self.inner.write_all(&frame.header.encode()).await?;
+        self.inner.write_all(&frame.meta).await?;
         if !frame.data.is_empty() {
             self.inner
                 .write_all(bytemuck::cast_slice(&frame.data))
                 .await?;
         }
-        self.inner.flush().await?;
         self.bytes_written += frame.wire_len() as u64;
         Ok(())
     }
 
-    pub fn into_inner(self) -> W {
-        self.inner
+    /// Sends every frame put so far.
+    pub async fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush().await
     }
 }
 

@@ -229,7 +229,14 @@ async fn write_until_closed(
             Ok(None) => break,
             Err(_) => heartbeat.clone(),
         };
-        if writer.write(&frame).await.is_err() {
+        // Whatever else is queued by now goes out in the same write.
+        let mut sent = writer.put(&frame).await;
+        while sent.is_ok()
+            && let Ok(next) = queue.try_recv()
+        {
+            sent = writer.put(&next).await;
+        }
+        if sent.is_err() || writer.flush().await.is_err() {
             break;
         }
     }
