@@ -191,10 +191,6 @@ mod tests {
         })
     }
 
-    fn largest_chunk(scene: &SceneHeader) -> u64 {
-        scene.largest_chunk_memory()
-    }
-
     fn waits(r: &Render, fork: Option<NodeId>) -> bool {
         matches!(decide(r, fork), Ok(None))
     }
@@ -226,7 +222,7 @@ mod tests {
     #[test]
     fn demand_refuses_a_cache_smaller_than_the_largest_chunk() {
         let scene = scene();
-        let largest = largest_chunk(&scene);
+        let largest = scene.largest_chunk_memory();
         let mut r = Render {
             scene: Some(scene),
             job: Some(job(TransferMode::Demand, largest - 1)),

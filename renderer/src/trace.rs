@@ -308,13 +308,9 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             tmax,
             |_| {},
             |chunk_id, tmax| {
-                let chunk = match self.reach(chunk_id, searched, missing) {
-                    Ok(Some(c)) => c,
-                    Ok(None) => return Visit::Continue,
-                    Err(e) => {
-                        error = Some(e);
-                        return Visit::Stop;
-                    }
+                let chunk = match self.reach(chunk_id, searched, missing, &mut error) {
+                    Ok(c) => c,
+                    Err(visit) => return visit,
                 };
                 let kind = self.surface_kind(chunk_id);
                 let improved = if kind == SurfaceKind::Solid {
@@ -347,26 +343,31 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         error
     }
 
-    /// The chunk a top-level walk reaches: `None` to go on without it, because the query
-    /// searched it before it waited, or because it is missing (the first such is noted in
-    /// `missing`, while deferring); an error that ends the query.
+    /// The chunk a top-level walk reaches, or how the walk goes on without it: past it
+    /// ([`Visit::Continue`]) when the query searched it before it waited or when it is
+    /// missing (the first such is noted in `missing`, while deferring); stopped
+    /// ([`Visit::Stop`]) by an error, put in `error`, that ends the query.
     #[inline(always)]
     fn reach(
         &self,
         chunk_id: u32,
         searched: &Searched,
         missing: &Cell<Option<u32>>,
-    ) -> Result<Option<D::ChunkRef<'a>>, DataError> {
+        error: &mut Option<DataError>,
+    ) -> Result<D::ChunkRef<'a>, Visit> {
         if D::MAY_DEFER && searched.holds(chunk_id) {
-            return Ok(None);
+            return Err(Visit::Continue);
         }
         match self.data.chunk(chunk_id) {
-            Ok(c) => Ok(Some(c)),
+            Ok(c) => Ok(c),
             Err(DataError::Missing(_)) => {
                 missing.set(missing.get().or(Some(chunk_id)));
-                Ok(None)
+                Err(Visit::Continue)
             }
-            Err(e) => Err(e),
+            Err(e) => {
+                *error = Some(e);
+                Err(Visit::Stop)
+            }
         }
     }
 
@@ -422,13 +423,9 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             &mut tmax,
             |_| {},
             |chunk_id, tmax| {
-                let chunk = match self.reach(chunk_id, &searched, &missing) {
-                    Ok(Some(c)) => c,
-                    Ok(None) => return Visit::Continue,
-                    Err(e) => {
-                        error = Some(e);
-                        return Visit::Stop;
-                    }
+                let chunk = match self.reach(chunk_id, &searched, &missing, &mut error) {
+                    Ok(c) => c,
+                    Err(visit) => return visit,
                 };
                 let kind = self.surface_kind(chunk_id);
                 chunk.accel().each_hit(&q, *tmax, |tri, hit| {
