@@ -12,6 +12,10 @@ use crate::{
     cluster::{ClusterError, JoinConfig, join, leave},
 };
 
+/// How long a lost connection to another node waits to be explained by the host's shutdown
+/// before it is logged as a warning.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Why a node role ended other than by the host's shutdown.
 #[derive(Debug, thiserror::Error)]
 pub enum RoleError {
@@ -46,13 +50,31 @@ pub async fn run_role<H: RoleHandler>(
     tracing::info!("{name} {} ready", fabric.me());
     // What arrived before the host said go comes first, in the order it arrived.
     let mut early = std::collections::VecDeque::from(joined.early);
+    // A neighbour that read the host's shutdown first hangs up before this node has read
+    // its own: such losses are told only if no shutdown follows within the grace.
+    let mut unexplained: Vec<(tokio::time::Instant, String)> = Vec::new();
     loop {
         let delivery = match early.pop_front() {
             Some(d) => d,
-            None => match inbox.recv().await {
-                Some(d) => d,
-                None => return Err(RoleError::HostLost),
-            },
+            None => {
+                let next = match unexplained.first() {
+                    Some(&(deadline, _)) => {
+                        match tokio::time::timeout_at(deadline, inbox.recv()).await {
+                            Ok(next) => next,
+                            Err(_) => {
+                                let (_, line) = unexplained.remove(0);
+                                tracing::warn!("{line}");
+                                continue;
+                            }
+                        }
+                    }
+                    None => inbox.recv().await,
+                };
+                match next {
+                    Some(d) => d,
+                    None => return Err(RoleError::HostLost),
+                }
+            }
         };
         match delivery {
             Delivery::Frame { frame, via } => {
@@ -71,6 +93,9 @@ pub async fn run_role<H: RoleHandler>(
                 // ignores them.
                 match (&message, via) {
                     (Message::Shutdown { reason }, Via::Control(0)) => {
+                        for (_, line) in unexplained.drain(..) {
+                            tracing::debug!("{line} (the cluster is stopping)");
+                        }
                         tracing::info!("{name} {} stopping: {reason}", fabric.me());
                         leave(&fabric).await;
                         return Ok(());
@@ -94,10 +119,13 @@ pub async fn run_role<H: RoleHandler>(
                 fabric.begin_shutdown();
                 return Err(RoleError::HostLost);
             }
-            Delivery::Lost { peer, kind, reason } => tracing::warn!(
-                "{name} {}: lost {kind:?} connection to node {peer}: {reason}",
-                fabric.me()
-            ),
+            Delivery::Lost { peer, kind, reason } => unexplained.push((
+                tokio::time::Instant::now() + SHUTDOWN_GRACE,
+                format!(
+                    "{name} {}: lost {kind:?} connection to node {peer}: {reason}",
+                    fabric.me()
+                ),
+            )),
             Delivery::Incoming { .. } => {}
         }
     }
