@@ -16,7 +16,7 @@ use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
 use renderer::{
     SceneHeader,
     render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
-    source::Touched,
+    source::{Fetching, Touched},
     trace::{TraceStats, Tracer},
 };
 
@@ -289,7 +289,9 @@ impl Worker {
                     // than one pixel's worth waiting to be freed.
                     reader.refresh();
                     reader.tick();
-                    let data = touched.watching(&*reader);
+                    // Deferral is never turned on here (only coherent batches do).
+                    let fetching = Fetching(&*reader);
+                    let data = touched.watching(&fetching);
                     let tracer = Tracer::new(&self.scene, &data);
                     let px =
                         render_pixel(&tracer, &self.job.camera, settings, x, band.y, trace_stats)?;

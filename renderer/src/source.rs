@@ -196,6 +196,36 @@ impl<D: SceneData> SceneData for Noting<'_, D> {
     }
 }
 
+/// Data that could defer, used where it never does (its deferral is never turned on): a
+/// render node's cache when rays are not made coherent. Saying so lets the ray queries be
+/// compiled without the bookkeeping for paths put aside, as they are for data in memory.
+pub struct Fetching<'a, D>(pub &'a D);
+
+impl<D: SceneData> SceneData for Fetching<'_, D> {
+    type ChunkRef<'b>
+        = D::ChunkRef<'b>
+    where
+        Self: 'b;
+    type TileRef<'b>
+        = D::TileRef<'b>
+    where
+        Self: 'b;
+
+    #[inline(always)]
+    fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError> {
+        let chunk = self.0.chunk(id);
+        debug_assert!(!matches!(chunk, Err(DataError::Missing(_))), "deferred");
+        chunk
+    }
+
+    #[inline(always)]
+    fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError> {
+        let tile = self.0.tile(id);
+        debug_assert!(!matches!(tile, Err(DataError::Missing(_))), "deferred");
+        tile
+    }
+}
+
 /// Noting data defers as the data it watches does (an item it lacks was noted when asked).
 impl<D: SceneData + Deferral> Deferral for Noting<'_, D> {
     fn defer(&self, on: bool) {
