@@ -878,15 +878,17 @@ impl Rendering {
                 x,
                 y,
                 width,
-            } if matches!(via, Via::Direct(_)) && frame.data.len() == width as usize * 3 => {
+            } if matches!(via, Via::Direct(_))
+                && width > 0
+                && !frame.data.is_empty()
+                && frame.data.len() % (width as usize * 3) == 0 =>
+            {
                 self.times.pixels_in(subscreen);
-                let actions = self.scheduler.pixels(subscreen, x, y, width);
-                let run = Run {
-                    x,
-                    y,
-                    data: &frame.data,
-                };
-                self.perform(actions, Some(run), faults);
+                for (row, data) in frame.data.chunks_exact(width as usize * 3).enumerate() {
+                    let y = y.saturating_add(row as u32);
+                    let actions = self.scheduler.pixels(subscreen, x, y, width);
+                    self.perform(actions, Some(Run { x, y, data }), faults);
+                }
             }
             Message::Failed { node, message } => {
                 return Err(ClusterRenderError::NodeFailed { node, message });

@@ -260,7 +260,8 @@ pub enum Message {
         rect: Rect,
     },
     NoMoreWork,
-    /// One scan line of a subscreen: `width` RGB f32 pixels from (x, y), as data.
+    /// Scan lines of a subscreen, top down from (x, y): as data, a whole number of rows of
+    /// `width` RGB f32 pixels each.
     Pixels {
         subscreen: u32,
         y: u32,

@@ -1,5 +1,5 @@
 //! The rendering threads of a render node: ask the host for a subscreen, render it scan line
-//! by scan line, send each line to the fork node, ask again. They run apart from the
+//! by scan line, send the lines to the fork node (a few at a time), ask again. They run apart from the
 //! node's networking, which keeps forwarding other nodes' packets meanwhile.
 
 use std::{
@@ -240,6 +240,7 @@ impl Worker {
         let rect = active.rect;
         let settings = &self.job.settings;
         let mut pixels: Vec<[f32; 3]> = Vec::new();
+        let mut unsent = Unsent::new();
         loop {
             // Coherent rays (the host asks for them only with a cache smaller than the scene)
             // want many paths in flight: as many rows are taken at once as fill a batch. One
@@ -299,28 +300,85 @@ impl Worker {
                     pixels.push(px);
                 }
             }
-            for (row, line) in pixels.chunks(rect.width.max(1) as usize).enumerate() {
-                let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(line).into();
-                let msg = Message::Pixels {
-                    subscreen: id,
-                    y: band.y + row as u32,
-                    x: rect.x,
-                    width: rect.width,
-                };
-                // To the fork node serving this node now: another card's, once its own is
-                // lost.
-                let fork = self
-                    .fabric
-                    .serving_fork(self.fabric.me())
-                    .unwrap_or(self.fork);
-                self.fabric.send(fork, &msg, words, 0)?;
-                self.stats.rows.fetch_add(1, Ordering::Relaxed);
-                self.stats
-                    .pixels
-                    .fetch_add(rect.width as u64, Ordering::Relaxed);
+            unsent.add(band.y, &pixels);
+            if unsent.due() {
+                self.send_rows(id, rect, &mut unsent)?;
             }
         }
+        self.send_rows(id, rect, &mut unsent)
+    }
+
+    /// Sends the rows rendered and not yet sent, in one frame, to the fork node.
+    fn send_rows(&self, id: u32, rect: Rect, unsent: &mut Unsent) -> Result<(), RenderError> {
+        if unsent.pixels.is_empty() {
+            return Ok(());
+        }
+        let rows = unsent.pixels.len() as u64 / rect.width.max(1) as u64;
+        let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(&unsent.pixels).into();
+        let msg = Message::Pixels {
+            subscreen: id,
+            y: unsent.y,
+            x: rect.x,
+            width: rect.width,
+        };
+        unsent.clear();
+        // To the fork node serving this node now: another card's, once its own is lost.
+        let fork = self
+            .fabric
+            .serving_fork(self.fabric.me())
+            .unwrap_or(self.fork);
+        self.fabric.send(fork, &msg, words, 0)?;
+        self.stats.rows.fetch_add(rows, Ordering::Relaxed);
+        self.stats
+            .pixels
+            .fetch_add(rows * rect.width as u64, Ordering::Relaxed);
         Ok(())
+    }
+}
+
+/// Rows of a subscreen rendered and not yet sent. Rows go in one frame (a few rows of a
+/// small subscreen are a few hundred bytes, and each frame costs every process it crosses
+/// a wake-up and a write), but never wait long: the host keeps what arrived when a render
+/// stops, and shows progress by it.
+struct Unsent {
+    /// The first unsent row.
+    y: u32,
+    pixels: Vec<[f32; 3]>,
+    /// When the first unsent row was added.
+    since: Option<Instant>,
+}
+
+/// Unsent rows go once they fill this many pixels...
+const PIXELS_PER_FRAME: usize = 4096;
+/// ...or once the first of them has waited this long.
+const LONGEST_HOLD: Duration = Duration::from_millis(250);
+
+impl Unsent {
+    fn new() -> Unsent {
+        Unsent {
+            y: 0,
+            pixels: Vec::new(),
+            since: None,
+        }
+    }
+
+    /// Adds rows that follow the unsent ones (rows are rendered in order, top down).
+    fn add(&mut self, y: u32, pixels: &[[f32; 3]]) {
+        if self.since.is_none() {
+            self.y = y;
+            self.since = Some(Instant::now());
+        }
+        self.pixels.extend_from_slice(pixels);
+    }
+
+    fn due(&self) -> bool {
+        self.pixels.len() >= PIXELS_PER_FRAME
+            || self.since.is_some_and(|t| t.elapsed() >= LONGEST_HOLD)
+    }
+
+    fn clear(&mut self) {
+        self.pixels.clear();
+        self.since = None;
     }
 }
 
@@ -360,6 +418,25 @@ fn record(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn unsent_rows_wait_until_a_frame_is_full_or_the_first_has_waited_long() {
+        let mut u = Unsent::new();
+        assert!(!u.due(), "nothing to send");
+        u.add(7, &[[1.0; 3]; 100]);
+        u.add(8, &[[2.0; 3]; 100]);
+        assert_eq!(u.y, 7, "the frame starts at the first unsent row");
+        assert_eq!(u.pixels.len(), 200);
+        assert!(!u.due());
+        u.add(9, &vec![[3.0; 3]; PIXELS_PER_FRAME]);
+        assert!(u.due(), "full");
+        u.clear();
+        assert!(!u.due());
+        u.add(10, &[[4.0; 3]; 10]);
+        assert_eq!(u.y, 10, "a new frame starts after a clear");
+        u.since = Some(Instant::now() - LONGEST_HOLD);
+        assert!(u.due(), "waited long enough");
+    }
 
     #[test]
     fn give_back_halves_the_rest_and_never_the_rows_in_hand() {
