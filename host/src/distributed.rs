@@ -881,7 +881,7 @@ impl Rendering {
             } if matches!(via, Via::Direct(_))
                 && width > 0
                 && !frame.data.is_empty()
-                && frame.data.len() % (width as usize * 3) == 0 =>
+                && frame.data.len().is_multiple_of(width as usize * 3) =>
             {
                 self.times.pixels_in(subscreen);
                 for (row, data) in frame.data.chunks_exact(width as usize * 3).enumerate() {
