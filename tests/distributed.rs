@@ -95,6 +95,7 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     );
     // Coherent rays (the default): paths waited for chunks and tiles the full cache lacked.
     assert_eq!(v["coherent_rays"], true);
+    assert_eq!(v["ask_ahead"], true, "the default");
     assert!(t["paths_deferred"].as_u64().unwrap() > 0, "{t}");
     assert!(t["deferred_fetches"].as_u64().unwrap() > 0, "{t}");
     let fetched =
@@ -147,6 +148,8 @@ fn tiny_cluster_matches_in_every_mode() {
         vec!["--transfer", "batch", "--subscreens", "1"],
         vec!["--transfer", "batch", "--subscreens", "7"],
         vec!["--transfer", "batch", "--subscreens", "500"],
+        // The paper's way: a node asks for its next subscreen only once it has finished one.
+        vec!["--ask-ahead", "off", "--subscreens", "40", "--adaptive"],
         vec![
             "--transfer",
             "demand",

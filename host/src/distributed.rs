@@ -49,6 +49,8 @@ pub struct ClusterRenderConfig {
     pub render_threads: u32,
     /// Render nodes trace memory-coherent rays (see [`JobSpec::coherent_rays`]).
     pub coherent_rays: bool,
+    /// Render nodes ask for their next subscreen as they begin one ([`JobSpec::ask_ahead`]).
+    pub ask_ahead: bool,
 }
 
 /// Why a cluster render stopped without an image.
@@ -136,6 +138,8 @@ pub struct ClusterStats {
     /// Whether render nodes traced memory-coherent rays: asked for, with a demand cache
     /// smaller than the scene (the totals count the paths put aside).
     pub coherent_rays: bool,
+    /// Whether render nodes asked for their next subscreen as they began one.
+    pub ask_ahead: bool,
     pub link_model: String,
     pub time_scale: f64,
     pub totals: NodeStats,
@@ -631,6 +635,7 @@ fn plan_job(
         coherent_rays: config.coherent_rays
             && config.transfer == TransferMode::Demand
             && cache_bytes < data_bytes,
+        ask_ahead: config.ask_ahead,
     };
     Ok(JobPlan {
         job,
@@ -853,14 +858,16 @@ impl Rendering {
             return Ok(());
         }
         match msg {
-            Message::SubscreenRequest { finished } => {
+            Message::SubscreenRequest { finished, ahead } => {
                 let request = Request {
                     node: sender,
                     tag: frame.header.tag,
                 };
                 // A repeat of a waiting request is answered by the first one's frame.
                 self.requests.entry(request).or_insert(frame);
-                let actions = self.scheduler.request(request, finished, Instant::now());
+                let actions = self
+                    .scheduler
+                    .request(request, finished, ahead, Instant::now());
                 self.perform(actions, None, faults);
                 if !self.scheduler.is_waiting(request) {
                     self.requests.remove(&request);
@@ -969,6 +976,7 @@ impl Rendering {
                 Message::Subscreen { id, rect }
             }
             Answer::NoMoreWork => Message::NoMoreWork,
+            Answer::NothingAhead => Message::NothingAhead,
         };
         let _ = self
             .f
@@ -1244,6 +1252,7 @@ fn cluster_stats(
         adaptive: config.adaptive,
         order: config.order,
         coherent_rays: done.plan.job.coherent_rays,
+        ask_ahead: done.plan.job.ask_ahead,
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,

@@ -40,8 +40,13 @@ pub struct Request {
 /// What a request for work is answered with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Answer {
-    Subscreen { id: u32, rect: Rect },
+    Subscreen {
+        id: u32,
+        rect: Rect,
+    },
     NoMoreWork,
+    /// To a request ahead (its node still renders): nothing is queued now.
+    NothingAhead,
 }
 
 /// What the host is to do after an event.
@@ -390,10 +395,14 @@ impl Scheduler {
     }
 
     /// A render node asks for work, saying which subscreen it has just finished, if any.
+    /// A request `ahead` comes from a node that still renders a subscreen: it gets a queued
+    /// one or [`Answer::NothingAhead`] at once, and is neither parked nor a reason to split
+    /// another node's work (the node is not idle).
     pub fn request(
         &mut self,
         request: Request,
         finished: Option<u32>,
+        ahead: bool,
         now: Instant,
     ) -> Vec<Action> {
         let mut actions = Vec::new();
@@ -414,6 +423,13 @@ impl Scheduler {
             s.finished_at = Some(now);
             s.giving_back = false;
         }
+        if ahead && self.queue.is_empty() {
+            let answer = Answer::NothingAhead;
+            self.answered.insert(request, answer);
+            actions.push(Action::Answer { request, answer });
+            return actions;
+        }
+        // A queued subscreen means no request is parked: one ahead is answered at once too.
         self.parked.push_back(request);
         self.hand_out(&mut actions);
         if self.adaptive && !self.parked.is_empty() {
@@ -761,29 +777,91 @@ mod tests {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(4, &[2, 2, 2], false), clock.at(0));
         assert_eq!(
-            s.request(ask(B, 1), None, clock.at(1)),
+            s.request(ask(B, 1), None, false, clock.at(1)),
             vec![given(ask(B, 1), 0, rect(0, 0, 4, 2))]
         );
         assert_eq!(
-            s.request(ask(A, 1), None, clock.at(2)),
+            s.request(ask(A, 1), None, false, clock.at(2)),
             vec![given(ask(A, 1), 1, rect(0, 2, 4, 2))]
         );
         assert_eq!(
-            s.request(ask(B, 2), Some(0), clock.at(3)),
+            s.request(ask(B, 2), Some(0), false, clock.at(3)),
             vec![given(ask(B, 2), 2, rect(0, 4, 4, 2))]
         );
         // Nothing left, and without adaptive redivision nobody is asked to share: A waits.
-        assert_eq!(s.request(ask(A, 2), Some(1), clock.at(4)), vec![]);
+        assert_eq!(s.request(ask(A, 2), Some(1), false, clock.at(4)), vec![]);
         assert!(s.is_waiting(ask(A, 2)));
         assert_eq!((s.planned(), s.split()), (3, 0));
+    }
+
+    #[test]
+    fn a_request_ahead_takes_a_queued_subscreen_or_is_told_nothing_at_once() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(plan(4, &[2, 2, 2], true), clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        assert_eq!(
+            s.request(ask(A, 2), None, true, clock.at(1)),
+            vec![given(ask(A, 2), 1, rect(0, 2, 4, 2))],
+            "asked while rendering subscreen 0: the next in line"
+        );
+        s.request(ask(B, 1), None, false, clock.at(1));
+        let nothing = vec![Action::Answer {
+            request: ask(B, 2),
+            answer: Answer::NothingAhead,
+        }];
+        // Nothing is queued: B, busy, is neither parked nor a reason for A to give back
+        // half, although redivision is on.
+        assert_eq!(s.request(ask(B, 2), None, true, clock.at(2)), nothing);
+        assert!(!s.is_waiting(ask(B, 2)));
+        assert_eq!(
+            s.request(ask(B, 2), None, true, clock.at(3)),
+            nothing,
+            "a repeat gets the same answer"
+        );
+        // Once done, B asks as usual and, with nothing queued, makes A (which holds two
+        // subscreens) give back part of one.
+        rows(&mut s, 2, 4, 4..6);
+        let share = s.request(ask(B, 3), Some(2), false, clock.at(4));
+        assert!(
+            matches!(share[..], [Action::GiveBack { node: A, .. }]),
+            "{share:?}"
+        );
+        assert!(s.is_waiting(ask(B, 3)));
+    }
+
+    #[test]
+    fn a_lost_node_gives_up_the_subscreen_it_was_handed_ahead() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(plan(2, &[1, 1, 1], false), clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(A, 2), None, true, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
+        rows(&mut s, 2, 2, 2..3);
+        assert_eq!(s.request(ask(B, 2), Some(2), false, clock.at(1)), vec![]);
+        // A rendered neither its subscreen nor the one it was handed ahead.
+        let actions = s.node_lost(A);
+        assert_eq!(
+            actions,
+            vec![
+                Action::Reassigned {
+                    node: A,
+                    subscreens: 2
+                },
+                given(ask(B, 2), 1, rect(0, 1, 2, 1)),
+            ]
+        );
+        assert_eq!(
+            s.request(ask(B, 3), Some(1), false, clock.at(2)),
+            vec![given(ask(B, 3), 0, rect(0, 0, 2, 1))]
+        );
     }
 
     #[test]
     fn the_last_pixel_completes_the_frame_and_waiting_nodes_are_told_no_more_work() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(3, &[1, 1], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         assert_eq!(
             s.pixels(0, 0, 0, 3),
             vec![
@@ -798,7 +876,7 @@ mod tests {
                 }
             ]
         );
-        assert_eq!(s.request(ask(A, 2), Some(0), clock.at(1)), vec![]);
+        assert_eq!(s.request(ask(A, 2), Some(0), false, clock.at(1)), vec![]);
         assert_eq!(s.missing(), 3);
         let last = s.pixels(1, 0, 1, 3);
         assert_eq!(last.last(), Some(&Action::Complete));
@@ -817,7 +895,7 @@ mod tests {
     fn pixels_already_there_are_kept_and_only_new_ones_stored() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(6, &[1], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
         s.pixels(0, 2, 0, 2);
         assert_eq!(
             s.pixels(0, 0, 0, 6),
@@ -842,19 +920,19 @@ mod tests {
     fn an_idle_node_makes_the_busiest_give_back_half_when_adaptive() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[8, 2], true), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 1, 2, 8..10);
         // B is done and asks; A holds 8 rows still missing.
         assert_eq!(
-            s.request(ask(B, 2), Some(1), clock.at(1)),
+            s.request(ask(B, 2), Some(1), false, clock.at(1)),
             vec![Action::GiveBack {
                 node: A,
                 subscreen: 0
             }]
         );
         // A repeat of the ask does not ask A twice.
-        assert_eq!(s.request(ask(B, 3), None, clock.at(2)), vec![]);
+        assert_eq!(s.request(ask(B, 3), None, false, clock.at(2)), vec![]);
         // A has begun 3 rows and gives back the other 5, split off as subscreen 2, which
         // goes to the first waiting request; for the second, B now holds the most rows.
         assert_eq!(
@@ -878,24 +956,24 @@ mod tests {
     fn no_give_back_without_adaptive_nor_for_a_single_row() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[1], true), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        assert_eq!(s.request(ask(B, 1), None, clock.at(0)), vec![]);
+        s.request(ask(A, 1), None, false, clock.at(0));
+        assert_eq!(s.request(ask(B, 1), None, false, clock.at(0)), vec![]);
         let mut s = Scheduler::new(plan(2, &[8], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        assert_eq!(s.request(ask(B, 1), None, clock.at(0)), vec![]);
+        s.request(ask(A, 1), None, false, clock.at(0));
+        assert_eq!(s.request(ask(B, 1), None, false, clock.at(0)), vec![]);
     }
 
     #[test]
     fn a_node_lost_mid_subscreen_has_its_missing_rows_rendered_by_another() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[6, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         // A sent rows 0, 1 and 3 of its subscreen before it died.
         rows(&mut s, 0, 2, 0..2);
         rows(&mut s, 0, 2, 3..4);
         rows(&mut s, 1, 2, 6..8);
-        assert_eq!(s.request(ask(B, 2), Some(1), clock.at(1)), vec![]);
+        assert_eq!(s.request(ask(B, 2), Some(1), false, clock.at(1)), vec![]);
         // Rows 2 and 4..6 are missing: the first run keeps id 0, the second becomes 2, and
         // the later run is first in line.
         assert_eq!(
@@ -909,7 +987,7 @@ mod tests {
             ]
         );
         assert_eq!(
-            s.request(ask(B, 3), Some(2), clock.at(2)),
+            s.request(ask(B, 3), Some(2), false, clock.at(2)),
             vec![given(ask(B, 3), 0, rect(0, 2, 2, 1))]
         );
         rows(&mut s, 2, 2, 4..6);
@@ -920,15 +998,15 @@ mod tests {
     fn rows_taken_back_go_before_subscreens_never_handed_out() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2, 2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         s.node_lost(A);
         assert_eq!(
-            s.request(ask(B, 2), None, clock.at(1)),
+            s.request(ask(B, 2), None, false, clock.at(1)),
             vec![given(ask(B, 2), 0, rect(0, 0, 2, 2))]
         );
         assert_eq!(
-            s.request(ask(B, 3), None, clock.at(2)),
+            s.request(ask(B, 3), None, false, clock.at(2)),
             vec![given(ask(B, 3), 2, rect(0, 4, 2, 2))]
         );
     }
@@ -937,8 +1015,8 @@ mod tests {
     fn work_taken_back_from_a_node_still_there_may_go_to_it_again() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 0, 2, 0..1);
         assert_eq!(
             s.take_back(A),
@@ -948,7 +1026,7 @@ mod tests {
             }]
         );
         assert_eq!(
-            s.request(ask(A, 2), None, clock.at(1)),
+            s.request(ask(A, 2), None, false, clock.at(1)),
             vec![given(ask(A, 2), 0, rect(0, 1, 2, 1))]
         );
     }
@@ -957,12 +1035,12 @@ mod tests {
     fn once_work_is_taken_back_rows_that_never_came_are_rendered_again() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 0, 2, 0..2);
         // B says it finished, but a row went to a fork node that is lost.
         rows(&mut s, 1, 2, 2..3);
-        s.request(ask(B, 2), Some(1), clock.at(1000));
+        s.request(ask(B, 2), Some(1), false, clock.at(1000));
         assert_eq!(s.tick(clock.at(5000)), vec![], "nothing suspected yet");
         // A's fork node is lost: A's work is taken back (none is missing), and from now
         // on finished subscreens missing rows are suspect.
@@ -986,10 +1064,10 @@ mod tests {
     fn a_node_lost_after_its_rows_arrived_leaves_nothing_to_redo() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 0, 2, 0..2);
-        s.request(ask(A, 2), Some(0), clock.at(1));
+        s.request(ask(A, 2), Some(0), false, clock.at(1));
         assert_eq!(
             s.node_lost(A),
             vec![Action::Reassigned {
@@ -1007,11 +1085,11 @@ mod tests {
     fn a_node_lost_after_finishing_with_rows_on_the_way_has_them_redone() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 0, 2, 0..1);
-        s.request(ask(A, 2), Some(0), clock.at(1));
-        s.request(ask(B, 2), Some(1), clock.at(1));
+        s.request(ask(A, 2), Some(0), false, clock.at(1));
+        s.request(ask(B, 2), Some(1), false, clock.at(1));
         assert_eq!(
             s.node_lost(A),
             vec![
@@ -1028,11 +1106,11 @@ mod tests {
     fn a_repeated_request_is_answered_as_the_first_and_costs_no_subscreen() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[1, 1, 1], false), clock.at(0));
-        let first = s.request(ask(A, 7), None, clock.at(0));
+        let first = s.request(ask(A, 7), None, false, clock.at(0));
         assert_eq!(first, vec![given(ask(A, 7), 0, rect(0, 0, 2, 1))]);
-        assert_eq!(s.request(ask(A, 7), None, clock.at(1)), first);
+        assert_eq!(s.request(ask(A, 7), None, false, clock.at(1)), first);
         assert_eq!(
-            s.request(ask(B, 7), None, clock.at(2)),
+            s.request(ask(B, 7), None, false, clock.at(2)),
             vec![given(ask(B, 7), 1, rect(0, 1, 2, 1))],
             "the same tag from another node is another request"
         );
@@ -1042,15 +1120,15 @@ mod tests {
     fn a_request_repeated_while_it_waits_is_answered_once() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2], true), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
         assert_eq!(
-            s.request(ask(B, 1), None, clock.at(0)),
+            s.request(ask(B, 1), None, false, clock.at(0)),
             vec![Action::GiveBack {
                 node: A,
                 subscreen: 0
             }]
         );
-        assert_eq!(s.request(ask(B, 1), None, clock.at(1)), vec![]);
+        assert_eq!(s.request(ask(B, 1), None, false, clock.at(1)), vec![]);
         assert_eq!(
             s.returned(A, 0, 1),
             vec![given(ask(B, 1), 1, rect(0, 1, 2, 1))]
@@ -1062,12 +1140,12 @@ mod tests {
     fn a_stall_is_reported_after_ten_quiet_seconds_and_again_ten_later() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[1, 1, 1], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 1, 2, 1..2);
-        s.request(ask(B, 2), Some(1), clock.at(0));
+        s.request(ask(B, 2), Some(1), false, clock.at(0));
         rows(&mut s, 2, 2, 2..3);
-        s.request(ask(B, 3), Some(2), clock.at(0));
+        s.request(ask(B, 3), Some(2), false, clock.at(0));
         // The pixels are noticed at the first tick; the silence counts from there.
         assert_eq!(s.tick(clock.at(100)), vec![]);
         assert_eq!(s.tick(clock.at(10_100)), vec![]);
@@ -1123,14 +1201,14 @@ mod tests {
             },
             clock.at(0),
         );
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
-        assert_eq!(s.request(ask(7, 1), None, clock.at(0)), vec![]);
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
+        assert_eq!(s.request(ask(7, 1), None, false, clock.at(0)), vec![]);
         // A and B say they finished, but one row of each was lost on the way (through 7).
         rows(&mut s, 0, 2, 0..1);
         rows(&mut s, 1, 2, 2..3);
-        s.request(ask(B, 2), Some(1), clock.at(1000));
-        s.request(ask(A, 2), Some(0), clock.at(3200));
+        s.request(ask(B, 2), Some(1), false, clock.at(1000));
+        s.request(ask(A, 2), Some(0), false, clock.at(3200));
         // Without a lost node nothing is suspected, however long it takes.
         assert_eq!(s.tick(clock.at(5000)), vec![]);
         assert_eq!(
@@ -1162,11 +1240,11 @@ mod tests {
     fn rows_of_a_subscreen_finished_less_than_the_grace_ago_are_awaited() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], false), clock.at(0));
-        s.request(ask(A, 1), None, clock.at(0));
-        s.request(ask(B, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
+        s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 1, 2, 2..4);
         s.node_lost(B);
-        s.request(ask(A, 2), Some(0), clock.at(1000));
+        s.request(ask(A, 2), Some(0), false, clock.at(1000));
         assert_eq!(s.tick(clock.at(2900)), vec![]);
         assert_eq!(
             s.tick(clock.at(3200)),
@@ -1181,9 +1259,9 @@ mod tests {
     fn unknown_and_lost_nodes_and_stale_ids_change_nothing() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(plan(2, &[2, 2], true), clock.at(0));
-        assert_eq!(s.request(ask(99, 1), None, clock.at(0)), vec![]);
+        assert_eq!(s.request(ask(99, 1), None, false, clock.at(0)), vec![]);
         assert_eq!(s.node_lost(99), vec![]);
-        s.request(ask(A, 1), None, clock.at(0));
+        s.request(ask(A, 1), None, false, clock.at(0));
         // B never held subscreen 0; there is no subscreen 9.
         assert_eq!(s.returned(B, 0, 1), vec![]);
         assert_eq!(s.returned(A, 9, 1), vec![]);
@@ -1192,7 +1270,7 @@ mod tests {
         assert_eq!(s.pixels(0, 1, 0, 2), vec![]);
         assert_eq!(s.pixels(0, 2, 0, 0), vec![]);
         s.node_lost(B);
-        assert_eq!(s.request(ask(B, 2), None, clock.at(1)), vec![]);
+        assert_eq!(s.request(ask(B, 2), None, false, clock.at(1)), vec![]);
         assert_eq!(s.returned(B, 0, 1), vec![]);
         // A lost node's late pixels still count.
         assert_eq!(
@@ -1205,7 +1283,7 @@ mod tests {
         );
         assert_eq!(s.missing(), 6);
         assert_eq!(
-            s.request(ask(A, 2), None, clock.at(2)),
+            s.request(ask(A, 2), None, false, clock.at(2)),
             vec![given(ask(A, 2), 1, rect(0, 2, 2, 2))]
         );
     }
@@ -1218,7 +1296,7 @@ mod tests {
         let mut s = Scheduler::resume(plan(2, &[2, 6, 1], false), &done, clock.at(0));
         assert_eq!(s.missing(), 2 * 5);
         let answers: Vec<Action> = (1..=5)
-            .flat_map(|tag| s.request(ask(A, tag), None, clock.at(0)))
+            .flat_map(|tag| s.request(ask(A, tag), None, false, clock.at(0)))
             .collect();
         assert_eq!(
             answers,
@@ -1266,27 +1344,54 @@ mod tests {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(grid_plan(), clock.at(0));
         // A (the lower id) starts at the top, B half-way down the queue.
-        assert_eq!(subscreen_of(&s.request(ask(A, 1), None, clock.at(1))), 0);
-        let b_first = subscreen_of(&s.request(ask(B, 1), None, clock.at(2)));
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        let b_first = subscreen_of(&s.request(ask(B, 1), None, false, clock.at(2)));
         assert_eq!(b_first, 8, "half of the 15 left, from the top");
         // Each then takes a neighbour of its last, of equally near ones the first in line:
         // A the one to its right, B the one above (before those right of and below it).
-        assert_eq!(subscreen_of(&s.request(ask(A, 2), Some(0), clock.at(3))), 1);
-        assert_eq!(subscreen_of(&s.request(ask(B, 2), Some(8), clock.at(4))), 4);
-        assert_eq!(subscreen_of(&s.request(ask(A, 3), Some(1), clock.at(5))), 2);
-        assert_eq!(subscreen_of(&s.request(ask(B, 3), Some(4), clock.at(6))), 5);
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 2), Some(0), false, clock.at(3))),
+            1
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 2), Some(8), false, clock.at(4))),
+            4
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 3), Some(1), false, clock.at(5))),
+            2
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 3), Some(4), false, clock.at(6))),
+            5
+        );
     }
 
     #[test]
     fn in_local_order_rows_of_a_lost_node_still_go_first() {
         let clock = Clock(Instant::now());
         let mut s = Scheduler::new(grid_plan(), clock.at(0));
-        assert_eq!(subscreen_of(&s.request(ask(A, 1), None, clock.at(1))), 0);
-        assert_eq!(subscreen_of(&s.request(ask(B, 1), None, clock.at(2))), 8);
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 1), None, false, clock.at(2))),
+            8
+        );
         s.node_lost(A);
         // Subscreen 0 is far from B's last (8), yet it is what the frame waits for.
-        assert_eq!(subscreen_of(&s.request(ask(B, 2), Some(8), clock.at(3))), 0);
-        assert_eq!(subscreen_of(&s.request(ask(B, 3), Some(0), clock.at(4))), 1);
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 2), Some(8), false, clock.at(3))),
+            0
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 3), Some(0), false, clock.at(4))),
+            1
+        );
     }
 
     #[test]

@@ -252,8 +252,12 @@ pub enum Message {
     Job(Box<JobSpec>),
     /// A render node asks the host for work, saying which subscreen it last finished (all
     /// its rows sent), so the host can tell a finished subscreen from one that lost rows.
+    /// `ahead`: asked while it still renders one, for the one after (see
+    /// [`JobSpec::ask_ahead`]); answered at once, with [`Message::NothingAhead`] when no
+    /// subscreen is queued.
     SubscreenRequest {
         finished: Option<u32>,
+        ahead: bool,
     },
     Subscreen {
         id: u32,
@@ -288,6 +292,8 @@ pub enum Message {
     NodeDown {
         node: NodeId,
     },
+    /// The answer to a request ahead when no subscreen is queued: ask again when done.
+    NothingAhead,
 }
 
 /// How render nodes get shape and texture data.
@@ -317,6 +323,10 @@ pub struct JobSpec {
     /// for each miss.
     #[serde(default)]
     pub coherent_rays: bool,
+    /// Render nodes ask for their next subscreen as they begin one, so that the answer is
+    /// there when they finish it (instead of a round trip through the mesh after each).
+    #[serde(default)]
+    pub ask_ahead: bool,
 }
 
 /// What one node did, reported at the end of a render.
@@ -500,6 +510,7 @@ impl Message {
             Message::NodeStats(_) => "NodeStats",
             Message::Failed { .. } => "Failed",
             Message::NodeDown { .. } => "NodeDown",
+            Message::NothingAhead => "NothingAhead",
         }
     }
 }

@@ -188,6 +188,7 @@ mod tests {
             cache_bytes,
             render_threads: 1,
             coherent_rays: false,
+            ask_ahead: false,
         })
     }
 

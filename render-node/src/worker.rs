@@ -136,6 +136,17 @@ pub struct WorkStats {
 
 pub type ActiveMap = Arc<Mutex<HashMap<u32, Arc<Active>>>>;
 
+/// The host's answer to a request for work.
+enum Next {
+    Subscreen(u32, Arc<Active>),
+    /// Only to a request ahead: ask again when the current subscreen is done.
+    NothingAhead,
+    Done,
+}
+
+/// A request for work on its way.
+type Asked = tokio::task::JoinHandle<Result<Next, WorkerError>>;
+
 pub struct Worker {
     pub fabric: Fabric,
     pub runtime: tokio::runtime::Handle,
@@ -157,36 +168,33 @@ impl Worker {
         let mut reader = self.cache.reader();
         let touched = Touched::new(self.scene.chunks.len(), self.scene.tile_count as usize);
         let mut finished = None;
+        let mut ahead = None;
         loop {
             let t0 = Instant::now();
-            let f = self.fabric.clone();
-            let reply = self
-                .runtime
-                .block_on(async move {
-                    f.request(
-                        0,
-                        &Message::SubscreenRequest { finished },
-                        Box::new([]),
-                        Route::Mesh,
-                        ASK_TIMEOUT,
-                    )
-                    .await
-                })
-                .map_err(WorkerError::Ask)?;
+            let mut next = match ahead.take() {
+                Some(asked) => self.answer(asked)?,
+                None => Next::NothingAhead,
+            };
+            if let Next::NothingAhead = next {
+                next = self.answer(self.ask(finished.take(), false))?;
+            }
             self.stats
                 .idle_ns
                 .fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
-            let (id, rect) = match reply.message() {
-                Ok(Message::Subscreen { id, rect }) => (id, rect),
-                Ok(Message::NoMoreWork) => break,
-                other => return Err(WorkerError::Answer(format!("{other:?}"))),
+            let (id, active) = match next {
+                Next::Subscreen(id, active) => (id, active),
+                Next::Done => break,
+                Next::NothingAhead => {
+                    return Err(WorkerError::Answer(
+                        "nothing ahead, to a request that was not ahead".into(),
+                    ));
+                }
             };
+            if self.job.ask_ahead {
+                ahead = Some(self.ask(finished.take(), true));
+            }
+            let rect = active.rect;
             let t1 = Instant::now();
-            let active = Arc::new(Active::new(rect));
-            self.active
-                .lock()
-                .expect("active lock")
-                .insert(id, active.clone());
             let cpu0 = fabric::clock::thread_cpu_time();
             // This subscreen's counts alone: its record, then the node's totals.
             let mut trace_stats = TraceStats::default();
@@ -213,6 +221,44 @@ impl Worker {
             finished = Some(id);
         }
         Ok(())
+    }
+
+    /// Asks the host for a subscreen, on the node's runtime: the answer comes through the
+    /// mesh while this thread goes on. A subscreen given is registered as in progress as
+    /// soon as it arrives, so that the host can have its unbegun rows back before this
+    /// thread begins it.
+    fn ask(&self, finished: Option<u32>, ahead: bool) -> Asked {
+        let f = self.fabric.clone();
+        let active = self.active.clone();
+        self.runtime.spawn(async move {
+            let reply = f
+                .request(
+                    0,
+                    &Message::SubscreenRequest { finished, ahead },
+                    Box::new([]),
+                    Route::Mesh,
+                    ASK_TIMEOUT,
+                )
+                .await
+                .map_err(WorkerError::Ask)?;
+            match reply.message() {
+                Ok(Message::Subscreen { id, rect }) => {
+                    let a = Arc::new(Active::new(rect));
+                    active.lock().expect("active lock").insert(id, a.clone());
+                    Ok(Next::Subscreen(id, a))
+                }
+                Ok(Message::NoMoreWork) => Ok(Next::Done),
+                Ok(Message::NothingAhead) if ahead => Ok(Next::NothingAhead),
+                other => Err(WorkerError::Answer(format!("{other:?}"))),
+            }
+        })
+    }
+
+    /// Waits for the answer to a request.
+    fn answer(&self, asked: Asked) -> Result<Next, WorkerError> {
+        self.runtime
+            .block_on(asked)
+            .map_err(|e| WorkerError::Answer(format!("the request was lost: {e}")))?
     }
 
     /// Adds one subscreen's rays and samples to the node's totals.

@@ -411,7 +411,10 @@ impl Sim<'_> {
             let Some(a) = n.active.as_mut() else {
                 let finished = n.finished.take();
                 n.enter(Phase::Idle, now);
-                let msg = Message::SubscreenRequest { finished };
+                let msg = Message::SubscreenRequest {
+                    finished,
+                    ahead: false,
+                };
                 let bytes = wire(n.id, 0, &msg, 0);
                 let at = self.net.send(&n.to_host, bytes, now);
                 self.queue.at(at, Event::RequestAtHost { node, finished });

@@ -107,7 +107,13 @@ fn one_miss_on_one_link_costs_the_formula_for_each_message() {
     let chunk = 2000;
     let w = strips(4, 1, 1, 0.0, vec![chunk], |_| vec![0]);
     let r = simulate(&w, &paper("grid:1x1x1")).unwrap();
-    let ask = wire(&Message::SubscreenRequest { finished: None }, 0);
+    let ask = wire(
+        &Message::SubscreenRequest {
+            finished: None,
+            ahead: false,
+        },
+        0,
+    );
     let answer = wire(
         &Message::Subscreen {
             id: 0,

@@ -457,6 +457,10 @@ struct RenderArgs {
     /// (each miss is fetched at once while the thread waits, as in the paper).
     #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
     coherent_rays: bool,
+    /// Render nodes ask for their next subscreen as they begin one, so that it is there when
+    /// they finish (on), or only once they have finished (off, as in the paper).
+    #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
+    ask_ahead: bool,
     #[arg(long, default_value_t = 640)]
     width: u32,
     /// Image height; by default from the camera's aspect ratio, else 480.
@@ -793,6 +797,7 @@ fn render(args: RenderArgs) -> Result<()> {
             order: args.order,
             render_threads: args.render_threads.max(1),
             coherent_rays: args.coherent_rays,
+            ask_ahead: args.ask_ahead,
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let rt = runtime()?;
