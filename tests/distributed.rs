@@ -73,13 +73,24 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     let renderers: Vec<&serde_json::Value> =
         nodes.iter().filter(|n| n["role"] == "Render").collect();
     assert_eq!(renderers.len(), 80);
+    // Every render node ran its rendering loop: it rendered, or at least asked for work (a
+    // node that the machine's other load started late may find every subscreen given out).
+    // Most of them rendered.
     for n in &renderers {
         assert!(
-            n["subscreens"].as_u64().unwrap() >= 1,
-            "render node {} rendered nothing",
+            n["subscreens"].as_u64().unwrap() >= 1 || n["idle_s"].as_f64().unwrap() > 0.0,
+            "render node {} never asked for work",
             n["node"]
         );
     }
+    let rendered = renderers
+        .iter()
+        .filter(|n| n["subscreens"].as_u64().unwrap() >= 1)
+        .count();
+    assert!(
+        rendered >= 60,
+        "only {rendered} of 80 render nodes rendered"
+    );
     let t = &v["totals"];
     // Every counter the summary shows is filled in for a cluster as for one process.
     assert_eq!(v["rays"]["camera"].as_u64().unwrap(), 200 * 150 * 4);

@@ -397,7 +397,10 @@ impl Scheduler {
     /// A render node asks for work, saying which subscreen it has just finished, if any.
     /// A request `ahead` comes from a node that still renders a subscreen: it gets a queued
     /// one or [`Answer::NothingAhead`] at once, and is neither parked nor a reason to split
-    /// another node's work (the node is not idle).
+    /// another node's work (the node is not idle). It gets one only while more are queued
+    /// than there are render nodes: the last ones go to nodes that have finished, so that no
+    /// node sits idle at the end while another holds a subscreen it has not begun, and none
+    /// that started late is left without work.
     pub fn request(
         &mut self,
         request: Request,
@@ -423,13 +426,14 @@ impl Scheduler {
             s.finished_at = Some(now);
             s.giving_back = false;
         }
-        if ahead && self.queue.is_empty() {
+        let live = self.render_nodes.len() - self.lost.len();
+        if ahead && self.queue.len() <= live {
             let answer = Answer::NothingAhead;
             self.answered.insert(request, answer);
             actions.push(Action::Answer { request, answer });
             return actions;
         }
-        // A queued subscreen means no request is parked: one ahead is answered at once too.
+        // A queued subscreen means no request is parked: one ahead is served at once too.
         self.parked.push_back(request);
         self.hand_out(&mut actions);
         if self.adaptive && !self.parked.is_empty() {
@@ -797,47 +801,63 @@ mod tests {
     #[test]
     fn a_request_ahead_takes_a_queued_subscreen_or_is_told_nothing_at_once() {
         let clock = Clock(Instant::now());
-        let mut s = Scheduler::new(plan(4, &[2, 2, 2], true), clock.at(0));
+        let mut s = Scheduler::new(plan(4, &[2, 2, 2, 2, 2], true), clock.at(0));
         s.request(ask(A, 1), None, false, clock.at(0));
         assert_eq!(
             s.request(ask(A, 2), None, true, clock.at(1)),
             vec![given(ask(A, 2), 1, rect(0, 2, 4, 2))],
-            "asked while rendering subscreen 0: the next in line"
+            "asked while rendering subscreen 0, with more queued than nodes: the next in line"
         );
         s.request(ask(B, 1), None, false, clock.at(1));
-        let nothing = vec![Action::Answer {
-            request: ask(B, 2),
-            answer: Answer::NothingAhead,
-        }];
-        // Nothing is queued: B, busy, is neither parked nor a reason for A to give back
-        // half, although redivision is on.
-        assert_eq!(s.request(ask(B, 2), None, true, clock.at(2)), nothing);
+        let nothing = |tag| {
+            vec![Action::Answer {
+                request: ask(B, tag),
+                answer: Answer::NothingAhead,
+            }]
+        };
+        // Two queued for two nodes: they are kept for nodes that finish.
+        assert_eq!(s.request(ask(B, 2), None, true, clock.at(2)), nothing(2));
         assert!(!s.is_waiting(ask(B, 2)));
         assert_eq!(
-            s.request(ask(B, 2), None, true, clock.at(3)),
-            nothing,
+            s.request(ask(B, 2), None, true, clock.at(2)),
+            nothing(2),
             "a repeat gets the same answer"
         );
-        // Once done, B asks as usual and, with nothing queued, makes A (which holds two
-        // subscreens) give back part of one.
         rows(&mut s, 2, 4, 4..6);
-        let share = s.request(ask(B, 3), Some(2), false, clock.at(4));
+        assert_eq!(
+            s.request(ask(B, 3), Some(2), false, clock.at(3)),
+            vec![given(ask(B, 3), 3, rect(0, 6, 4, 2))]
+        );
+        rows(&mut s, 3, 4, 6..8);
+        assert_eq!(
+            s.request(ask(B, 4), Some(3), false, clock.at(4)),
+            vec![given(ask(B, 4), 4, rect(0, 8, 4, 2))]
+        );
+        // Nothing queued: B, busy, is neither parked nor a reason for A to give back half,
+        // although redivision is on.
+        assert_eq!(s.request(ask(B, 5), None, true, clock.at(5)), nothing(5));
+        // Once done, B asks as usual and makes A (which holds two subscreens it has not
+        // begun) give back part of one.
+        rows(&mut s, 4, 4, 8..10);
+        let share = s.request(ask(B, 6), Some(4), false, clock.at(6));
         assert!(
             matches!(share[..], [Action::GiveBack { node: A, .. }]),
             "{share:?}"
         );
-        assert!(s.is_waiting(ask(B, 3)));
+        assert!(s.is_waiting(ask(B, 6)));
     }
 
     #[test]
     fn a_lost_node_gives_up_the_subscreen_it_was_handed_ahead() {
         let clock = Clock(Instant::now());
-        let mut s = Scheduler::new(plan(2, &[1, 1, 1], false), clock.at(0));
+        let mut s = Scheduler::new(plan(2, &[1, 1, 1, 1], false), clock.at(0));
         s.request(ask(A, 1), None, false, clock.at(0));
         s.request(ask(A, 2), None, true, clock.at(0));
         s.request(ask(B, 1), None, false, clock.at(0));
         rows(&mut s, 2, 2, 2..3);
-        assert_eq!(s.request(ask(B, 2), Some(2), false, clock.at(1)), vec![]);
+        s.request(ask(B, 2), Some(2), false, clock.at(1));
+        rows(&mut s, 3, 2, 3..4);
+        assert_eq!(s.request(ask(B, 3), Some(3), false, clock.at(1)), vec![]);
         // A rendered neither its subscreen nor the one it was handed ahead.
         let actions = s.node_lost(A);
         assert_eq!(
@@ -847,12 +867,12 @@ mod tests {
                     node: A,
                     subscreens: 2
                 },
-                given(ask(B, 2), 1, rect(0, 1, 2, 1)),
+                given(ask(B, 3), 1, rect(0, 1, 2, 1)),
             ]
         );
         assert_eq!(
-            s.request(ask(B, 3), Some(1), false, clock.at(2)),
-            vec![given(ask(B, 3), 0, rect(0, 0, 2, 1))]
+            s.request(ask(B, 4), Some(1), false, clock.at(2)),
+            vec![given(ask(B, 4), 0, rect(0, 0, 2, 1))]
         );
     }
 
