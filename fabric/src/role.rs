@@ -52,18 +52,20 @@ pub async fn run_role<H: RoleHandler>(
     let mut early = std::collections::VecDeque::from(joined.early);
     // A neighbour that read the host's shutdown first hangs up before this node has read
     // its own: such losses are told only if no shutdown follows within the grace.
-    let mut unexplained: Vec<(tokio::time::Instant, String)> = Vec::new();
+    let mut unexplained: std::collections::VecDeque<(tokio::time::Instant, String)> =
+        Default::default();
     loop {
         let delivery = match early.pop_front() {
             Some(d) => d,
             None => {
-                let next = match unexplained.first() {
+                let next = match unexplained.front() {
                     Some(&(deadline, _)) => {
                         match tokio::time::timeout_at(deadline, inbox.recv()).await {
                             Ok(next) => next,
                             Err(_) => {
-                                let (_, line) = unexplained.remove(0);
-                                tracing::warn!("{line}");
+                                if let Some((_, line)) = unexplained.pop_front() {
+                                    tracing::warn!("{line}");
+                                }
                                 continue;
                             }
                         }
@@ -119,7 +121,7 @@ pub async fn run_role<H: RoleHandler>(
                 fabric.begin_shutdown();
                 return Err(RoleError::HostLost);
             }
-            Delivery::Lost { peer, kind, reason } => unexplained.push((
+            Delivery::Lost { peer, kind, reason } => unexplained.push_back((
                 tokio::time::Instant::now() + SHUTDOWN_GRACE,
                 format!(
                     "{name} {}: lost {kind:?} connection to node {peer}: {reason}",

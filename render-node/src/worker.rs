@@ -1,6 +1,6 @@
 //! The rendering threads of a render node: ask the host for a subscreen, render it scan line
-//! by scan line, send the lines to the fork node (a few at a time), ask again. They run apart from the
-//! node's networking, which keeps forwarding other nodes' packets meanwhile.
+//! by scan line, send the lines to the fork node (a few at a time), ask again. They run apart
+//! from the node's networking, which keeps forwarding other nodes' packets meanwhile.
 
 use std::{
     collections::HashMap,
@@ -16,7 +16,7 @@ use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
 use renderer::{
     SceneHeader,
     render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
-    source::{Fetching, Touched},
+    source::Touched,
     trace::{TraceStats, Tracer},
 };
 
@@ -171,13 +171,11 @@ impl Worker {
         let mut ahead = None;
         loop {
             let t0 = Instant::now();
-            let mut next = match ahead.take() {
-                Some(asked) => self.answer(asked)?,
-                None => Next::NothingAhead,
+            // The answer to the request sent ahead, unless there was none or it had nothing.
+            let next = match ahead.take().map(|asked| self.answer(asked)).transpose()? {
+                Some(Next::NothingAhead) | None => self.answer(self.ask(finished.take(), false))?,
+                Some(next) => next,
             };
-            if let Next::NothingAhead = next {
-                next = self.answer(self.ask(finished.take(), false))?;
-            }
             self.stats
                 .idle_ns
                 .fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -337,8 +335,7 @@ impl Worker {
                     reader.refresh();
                     reader.tick();
                     // Deferral is never turned on here (only coherent batches do).
-                    let fetching = Fetching(&*reader);
-                    let data = touched.watching(&fetching);
+                    let data = touched.watching_fetched(&*reader);
                     let tracer = Tracer::new(&self.scene, &data);
                     let px =
                         render_pixel(&tracer, &self.job.camera, settings, x, band.y, trace_stats)?;

@@ -163,15 +163,27 @@ impl Touched {
             touched: self,
         }
     }
+
+    /// As [`Touched::watching`], for data that could defer used where it never does (its
+    /// deferral is never turned on): a render node's cache when rays are not made coherent.
+    /// Saying so lets the ray queries be compiled without the bookkeeping for paths put
+    /// aside, as they are for data in memory.
+    pub fn watching_fetched<'a, D: SceneData>(&'a self, data: &'a D) -> Noting<'a, D, false> {
+        Noting {
+            data,
+            touched: self,
+        }
+    }
 }
 
-/// [`SceneData`] that passes every request on and notes its id in a [`Touched`].
-pub struct Noting<'a, D> {
+/// [`SceneData`] that passes every request on and notes its id in a [`Touched`]; it defers
+/// as the data it watches does, unless `DEFERS` says the data's deferral is never on.
+pub struct Noting<'a, D, const DEFERS: bool = true> {
     data: &'a D,
     touched: &'a Touched,
 }
 
-impl<D: SceneData> SceneData for Noting<'_, D> {
+impl<D: SceneData, const DEFERS: bool> SceneData for Noting<'_, D, DEFERS> {
     type ChunkRef<'b>
         = D::ChunkRef<'b>
     where
@@ -181,47 +193,27 @@ impl<D: SceneData> SceneData for Noting<'_, D> {
     where
         Self: 'b;
 
-    const MAY_DEFER: bool = D::MAY_DEFER;
+    const MAY_DEFER: bool = DEFERS && D::MAY_DEFER;
 
     #[inline(always)]
     fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError> {
         Touched::note(&self.touched.chunks, id);
-        self.data.chunk(id)
-    }
-
-    #[inline(always)]
-    fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError> {
-        Touched::note(&self.touched.tiles, id);
-        self.data.tile(id)
-    }
-}
-
-/// Data that could defer, used where it never does (its deferral is never turned on): a
-/// render node's cache when rays are not made coherent. Saying so lets the ray queries be
-/// compiled without the bookkeeping for paths put aside, as they are for data in memory.
-pub struct Fetching<'a, D>(pub &'a D);
-
-impl<D: SceneData> SceneData for Fetching<'_, D> {
-    type ChunkRef<'b>
-        = D::ChunkRef<'b>
-    where
-        Self: 'b;
-    type TileRef<'b>
-        = D::TileRef<'b>
-    where
-        Self: 'b;
-
-    #[inline(always)]
-    fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError> {
-        let chunk = self.0.chunk(id);
-        debug_assert!(!matches!(chunk, Err(DataError::Missing(_))), "deferred");
+        let chunk = self.data.chunk(id);
+        debug_assert!(
+            DEFERS || !matches!(chunk, Err(DataError::Missing(_))),
+            "deferred"
+        );
         chunk
     }
 
     #[inline(always)]
     fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError> {
-        let tile = self.0.tile(id);
-        debug_assert!(!matches!(tile, Err(DataError::Missing(_))), "deferred");
+        Touched::note(&self.touched.tiles, id);
+        let tile = self.data.tile(id);
+        debug_assert!(
+            DEFERS || !matches!(tile, Err(DataError::Missing(_))),
+            "deferred"
+        );
         tile
     }
 }
