@@ -350,9 +350,27 @@ impl Chunk {
         self.accel.each_hit(q, tmax, f);
     }
 
-    /// Surface attributes of triangle `tri` at barycentrics `hit`.
+    /// Surface attributes of triangle `tri` at barycentrics `hit`, every one the chunk has.
     pub fn surface(&self, tri: u32, hit: &TriHit) -> SurfaceAttributes {
+        self.surface_reading(tri, hit, || Reads::ALL)
+    }
+
+    /// Surface attributes of triangle `tri` at barycentrics `hit`, leaving out (as `None`)
+    /// the optional ones that `reads` says shading will not read; it is asked only when the
+    /// chunk has such attributes. Those given are the bits [`Chunk::surface`] gives.
+    #[inline]
+    pub fn surface_reading(
+        &self,
+        tri: u32,
+        hit: &TriHit,
+        reads: impl FnOnce() -> Reads,
+    ) -> SurfaceAttributes {
         let h = self.header();
+        let reads = if h.flags & (FLAG_UV0 | FLAG_UV1 | FLAG_TANGENTS) != 0 {
+            reads()
+        } else {
+            Reads::ALL
+        };
         let l = &self.layout;
         let p = &self.tri_positions()[tri as usize];
         let (v0, v1, v2) = tri_points(p);
@@ -390,8 +408,10 @@ impl Chunk {
         } else {
             Vec3::from(ng)
         };
+        // Texture coordinates serve textures and, with the first set, the tangent frame.
+        let uv = reads.uv || reads.frame;
         let uv_of = |flag: u32, start: usize, end: usize| -> Option<[Vec2; 3]> {
-            (h.flags & flag != 0).then(|| {
+            (uv && h.flags & flag != 0).then(|| {
                 let data: &[[f32; 2]] = self.section(start, end);
                 [
                     Vec2::from(data[idx[0]]),
@@ -402,12 +422,12 @@ impl Chunk {
         };
         let uv0 = uv_of(FLAG_UV0, l.uv0, l.uv1);
         let uv1 = uv_of(FLAG_UV1, l.uv1, l.tangents);
-        let tangent =
-            (h.flags & FLAG_TANGENTS != 0).then(|| interp4(self.section(l.tangents, l.colors)));
+        let tangent = (reads.frame && h.flags & FLAG_TANGENTS != 0)
+            .then(|| interp4(self.section(l.tangents, l.colors)));
         let color = (h.flags & FLAG_COLORS != 0).then(|| interp4(self.section(l.colors, l.end)));
 
         // dp/du and dp/dv from the first UV set, for normal mapping and texture footprints.
-        let dpdu = uv0.and_then(|uv| {
+        let dpdu = uv0.filter(|_| reads.frame).and_then(|uv| {
             let duv02 = uv[0] - uv[2];
             let duv12 = uv[1] - uv[2];
             let dp02 = Vec3::from(v0 - v2);
@@ -450,6 +470,23 @@ pub fn tri_points(p: &[f32; 9]) -> (Vec3A, Vec3A, Vec3A) {
         Vec3A::new(p[3], p[4], p[5]),
         Vec3A::new(p[6], p[7], p[8]),
     )
+}
+
+/// Which of a hit's optional attributes shading will read ([`Chunk::surface_reading`]):
+/// those it will not are not worked out. A Lambertian wall with no textures needs neither.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Reads {
+    /// Texture coordinates: some texture is sampled.
+    pub uv: bool,
+    /// The tangent frame (the interpolated tangent, dp/du and dp/dv): a normal map.
+    pub frame: bool,
+}
+
+impl Reads {
+    pub const ALL: Reads = Reads {
+        uv: true,
+        frame: true,
+    };
 }
 
 /// What shading needs to know about a hit point.
@@ -791,6 +828,62 @@ mod tests {
             }
             assert_eq!(got, brute, "ray {i}");
         }
+    }
+
+    #[test]
+    fn a_surface_read_in_part_gives_the_bits_of_the_whole_and_skips_the_rest() {
+        let mut m = grid_mesh(4);
+        m.normals = m.positions.iter().map(|_| Vec3::Z).collect();
+        m.tangents = m
+            .positions
+            .iter()
+            .map(|_| Vec4::new(1.0, 0.0, 0.0, 1.0))
+            .collect();
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 3, 0).expect("chunk");
+        let bits = |v: Option<Vec2>| v.map(|v| v.to_array().map(f32::to_bits));
+        for tri in 0..chunk.tri_count() {
+            let hit = TriHit {
+                t: 1.0,
+                b0: 0.2,
+                b1: 0.3,
+                b2: 0.5,
+            };
+            let whole = chunk.surface(tri, &hit);
+            assert!(whole.uv0.is_some() && whole.tangent.is_some() && whole.dpdu.is_some());
+            for (uv, frame) in [(false, false), (true, false), (false, true), (true, true)] {
+                let part = chunk.surface_reading(tri, &hit, || Reads { uv, frame });
+                assert_eq!(part.p.to_array(), whole.p.to_array());
+                assert_eq!(part.p_error.to_array(), whole.p_error.to_array());
+                assert_eq!(part.ng.to_array(), whole.ng.to_array());
+                assert_eq!(part.ns.to_array(), whole.ns.to_array());
+                assert_eq!(part.light, whole.light);
+                let read_uv = uv || frame;
+                assert_eq!(bits(part.uv0), bits(whole.uv0).filter(|_| read_uv));
+                assert_eq!(part.tangent.is_some(), frame);
+                assert_eq!(part.dpdu.is_some(), frame);
+                if frame {
+                    assert_eq!(part.tangent, whole.tangent);
+                    assert_eq!(part.dpdu, whole.dpdu);
+                }
+            }
+        }
+        // A chunk with no optional attributes never asks what will be read.
+        let plain = grid_mesh(2);
+        let plain = MeshData {
+            uv0: Vec::new(),
+            ..plain
+        };
+        let all: Vec<u32> = (0..plain.triangles.len() as u32).collect();
+        let chunk = build_chunk(&plain, &all, 0, 0).expect("chunk");
+        let hit = TriHit {
+            t: 1.0,
+            b0: 0.3,
+            b1: 0.3,
+            b2: 0.4,
+        };
+        let s = chunk.surface_reading(0, &hit, || panic!("asked what is read"));
+        assert!(s.uv0.is_none() && s.tangent.is_none() && s.dpdu.is_none());
     }
 
     #[test]

@@ -298,8 +298,10 @@ impl PathState {
             );
         let mut l = self.l;
 
-        let s = hit.chunk.surface(hit.tri, &hit.tri_hit);
-        let m = &scene.materials[s.material as usize];
+        let m = &scene.materials[hit.chunk.header().material as usize];
+        let s = hit
+            .chunk
+            .surface_reading(hit.tri, &hit.tri_hit, || m.reads());
         let params = material::shading_params(scene, t.data, m, &s)?;
         let wo = -Vec3::from(ray.dir).normalize();
         let front = wo.dot(s.ng) > 0.0;
@@ -436,8 +438,10 @@ fn whitted<D: SceneData>(
         &ray,
         medium.map(|m| &scene.materials[m as usize]),
     );
-    let s = hit.chunk.surface(hit.tri, &hit.tri_hit);
-    let m = &scene.materials[s.material as usize];
+    let m = &scene.materials[hit.chunk.header().material as usize];
+    let s = hit
+        .chunk
+        .surface_reading(hit.tri, &hit.tri_hit, || m.reads());
     let params = material::shading_params(scene, t.data, m, &s)?;
     let wo = -Vec3::from(ray.dir).normalize();
     let front = wo.dot(s.ng) > 0.0;

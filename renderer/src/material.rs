@@ -5,7 +5,7 @@ use glam::{Vec2, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    chunk::SurfaceAttributes,
+    chunk::{Reads, SurfaceAttributes},
     scene::SceneHeader,
     source::{DataError, SceneData},
     texture,
@@ -108,6 +108,27 @@ impl Default for Material {
 }
 
 impl Material {
+    /// What shading this material reads of a hit beyond its point and normals: texture
+    /// coordinates if it has a texture, the tangent frame if it has a normal map.
+    #[inline]
+    pub fn reads(&self) -> Reads {
+        let textured = [
+            &self.base_color_tex,
+            &self.metallic_roughness_tex,
+            &self.normal_tex,
+            &self.emissive_tex,
+            &self.specular_tex,
+            &self.specular_color_tex,
+            &self.transmission_tex,
+        ]
+        .iter()
+        .any(|t| t.is_some());
+        Reads {
+            uv: textured,
+            frame: self.normal_tex.is_some(),
+        }
+    }
+
     /// A plain Lambertian surface of the given colour.
     pub fn diffuse(name: &str, color: Vec3) -> Material {
         Material {

@@ -195,7 +195,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             return Ok(false);
         };
         let m = &self.scene.materials[chunk.header().material as usize];
-        let s = chunk.surface(tri, hit);
+        let s = chunk.surface_reading(tri, hit, || m.reads());
         let alpha = material::alpha_at(self.scene, self.data, m, &s)?;
         Ok(match m.alpha_mode {
             AlphaMode::Opaque => false,
