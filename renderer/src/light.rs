@@ -25,8 +25,14 @@ pub enum Light {
     /// `direction` is where the light travels; `irradiance` in W/m^2 (glTF: lux).
     Directional { direction: Vec3, irradiance: Vec3 },
     /// One emissive triangle. Radiance comes from its material (factor, strength, texture).
+    /// Made by [`Light::triangle`], which works out its unit normal and twice its area once
+    /// (every light sample needs them); a header received is checked to agree.
     Triangle {
         p: [Vec3; 3],
+        /// Unit normal, following the winding (zero for a triangle of no area).
+        n: Vec3,
+        /// Twice the area: the length of the corners' cross product.
+        area2: f32,
         uv: [Vec2; 3],
         material: u32,
         two_sided: bool,
@@ -280,6 +286,25 @@ pub fn triangle_radiance<D: SceneData>(
 }
 
 impl Light {
+    /// An emissive triangle with corners `p` (counter-clockwise seen from its front).
+    pub fn triangle(p: [Vec3; 3], uv: [Vec2; 3], material: u32, two_sided: bool) -> Light {
+        let cross = (p[1] - p[0]).cross(p[2] - p[0]);
+        let area2 = cross.length();
+        let n = if area2 > 0.0 {
+            cross / area2
+        } else {
+            Vec3::ZERO
+        };
+        Light::Triangle {
+            p,
+            n,
+            area2,
+            uv,
+            material,
+            two_sided,
+        }
+    }
+
     pub fn is_delta(&self) -> bool {
         !matches!(self, Light::Triangle { .. } | Light::Environment(_))
     }
@@ -301,12 +326,12 @@ impl Light {
                 4.0 * PI * PI * scene_radius * scene_radius * luminance(env.mean())
             }
             Light::Triangle {
-                p,
+                area2,
                 material,
                 two_sided,
                 ..
             } => {
-                let area = 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length();
+                let area = 0.5 * area2;
                 let m = &scene.materials[*material as usize];
                 let mut le = m.emissive;
                 if let Some(t) = &m.emissive_tex {
@@ -392,21 +417,21 @@ impl Light {
             }
             Light::Triangle {
                 p: v,
+                n,
+                area2,
                 uv,
                 material,
                 two_sided,
             } => {
+                let (n, area2) = (*n, *area2);
+                if !(area2 > 0.0) {
+                    return Ok(None);
+                }
                 // Uniform point on the triangle.
                 let su = safe_sqrt(u.0);
                 let (b0, b1) = (1.0 - su, u.1 * su);
                 let b2 = 1.0 - b0 - b1;
                 let q = v[0] * b0 + v[1] * b1 + v[2] * b2;
-                let n = (v[1] - v[0]).cross(v[2] - v[0]);
-                let area2 = n.length();
-                if !(area2 > 0.0) {
-                    return Ok(None);
-                }
-                let n = n / area2;
                 let d = q - p;
                 let d2 = d.length_squared();
                 if !(d2 > 0.0) {
@@ -440,15 +465,14 @@ impl Light {
     /// [`UNIFORM_SPHERE_PDF`]).
     pub fn pdf_at(&self, p: Vec3, q: Vec3) -> f32 {
         match self {
-            Light::Triangle { p: v, .. } => {
-                let n = (v[1] - v[0]).cross(v[2] - v[0]);
-                let area2 = n.length();
+            Light::Triangle { n, area2, .. } => {
+                let area2 = *area2;
                 if !(area2 > 0.0) {
                     return 0.0;
                 }
                 let d = q - p;
                 let d2 = d.length_squared();
-                let cos_l = (n / area2).dot(d / d2.sqrt()).abs();
+                let cos_l = n.dot(d / d2.sqrt()).abs();
                 if cos_l == 0.0 {
                     0.0
                 } else {

@@ -396,10 +396,22 @@ impl SceneHeader {
             ));
         }
         for (i, l) in self.lights.iter().enumerate() {
-            if let Light::Triangle { material, .. } = l
-                && *material as usize >= self.materials.len()
+            if let Light::Triangle {
+                p,
+                uv,
+                material,
+                two_sided,
+                ..
+            } = l
             {
-                return bad(format!("light {i} uses material {material}"));
+                if *material as usize >= self.materials.len() {
+                    return bad(format!("light {i} uses material {material}"));
+                }
+                if Light::triangle(*p, *uv, *material, *two_sided) != *l {
+                    return bad(format!(
+                        "light {i}'s normal or area disagrees with its corners"
+                    ));
+                }
             }
         }
         if let Some(e) = self.environment_light
@@ -541,16 +553,16 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryDa
                 let uv = if tex_coord == 1 { s.uv1 } else { s.uv0 };
                 uv.unwrap_or(Vec2::ZERO)
             };
-            lights.push(Light::Triangle {
-                p: [Vec3::from(v0), Vec3::from(v1), Vec3::from(v2)],
-                uv: [
+            lights.push(Light::triangle(
+                [Vec3::from(v0), Vec3::from(v1), Vec3::from(v2)],
+                [
                     uv_at([1.0, 0.0, 0.0]),
                     uv_at([0.0, 1.0, 0.0]),
                     uv_at([0.0, 0.0, 1.0]),
                 ],
-                material: material_id,
-                two_sided: m.double_sided,
-            });
+                material_id,
+                m.double_sided,
+            ));
         }
         c.set_light_base(base);
     }
@@ -712,5 +724,29 @@ mod pod_vec {
             }
             d.deserialize_bytes(V)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_received_triangle_light_must_agree_with_its_corners() {
+        let opts = PrepareOptions {
+            chunk_triangles: 4096,
+        };
+        let (mut header, _) = crate::prepare(crate::demo::demo_scene(), &opts);
+        header.validate().expect("a prepared header is valid");
+        let i = header
+            .lights
+            .iter()
+            .position(|l| matches!(l, Light::Triangle { .. }))
+            .expect("the demo scene has an area light");
+        if let Light::Triangle { area2, .. } = &mut header.lights[i] {
+            *area2 *= 2.0;
+        }
+        let e = header.validate().unwrap_err().to_string();
+        assert!(e.contains("disagrees with its corners"), "{e}");
     }
 }
