@@ -159,6 +159,8 @@ fn decode(texel: u32, srgb: bool) -> Vec4 {
 fn wrap(i: i64, n: u32, mode: Wrap) -> u32 {
     let n = n as i64;
     let v = match mode {
+        // A coordinate already inside needs no division (texture coordinates in [0, 1]).
+        Wrap::Repeat if (0..n).contains(&i) => i,
         Wrap::Repeat => i.rem_euclid(n),
         Wrap::ClampToEdge => i.clamp(0, n - 1),
         Wrap::MirroredRepeat => {
@@ -168,6 +170,17 @@ fn wrap(i: i64, n: u32, mode: Wrap) -> u32 {
         }
     };
     v as u32
+}
+
+/// `wrap(i + 1, n, mode)` given `at = wrap(i, n, mode)`: for repeat, the next texel without
+/// a second division.
+#[inline]
+fn wrap_next(i: i64, at: u32, n: u32, mode: Wrap) -> u32 {
+    match mode {
+        Wrap::Repeat if at + 1 < n => at + 1,
+        Wrap::Repeat => 0,
+        _ => wrap(i + 1, n, mode),
+    }
 }
 
 /// Reads one texel through the data source (which may fetch its tile).
@@ -204,9 +217,9 @@ pub fn sample<D: SceneData>(
             let (fx, fy) = ((xf - x0) as f32, (yf - y0) as f32);
             let (x0, y0) = (x0 as i64, y0 as i64);
             let xa = wrap(x0, tex.width, tex.wrap_s);
-            let xb = wrap(x0 + 1, tex.width, tex.wrap_s);
+            let xb = wrap_next(x0, xa, tex.width, tex.wrap_s);
             let ya = wrap(y0, tex.height, tex.wrap_t);
-            let yb = wrap(y0 + 1, tex.height, tex.wrap_t);
+            let yb = wrap_next(y0, ya, tex.height, tex.wrap_t);
             let [t00, t10, t01, t11] =
                 if xa / TILE_SIZE == xb / TILE_SIZE && ya / TILE_SIZE == yb / TILE_SIZE {
                     // The usual case: all four texels in one tile, fetched once.
@@ -223,8 +236,13 @@ pub fn sample<D: SceneData>(
                         texel(data, tex, xa, yb)?,
                         texel(data, tex, xb, yb)?,
                     ]
-                }
-                .map(|t| decode(t, srgb));
+                };
+            let [t00, t10, t01, t11] = [
+                decode(t00, srgb),
+                decode(t10, srgb),
+                decode(t01, srgb),
+                decode(t11, srgb),
+            ];
             let top = t00 * (1.0 - fx) + t10 * fx;
             let bottom = t01 * (1.0 - fx) + t11 * fx;
             Ok(top * (1.0 - fy) + bottom * fy)
@@ -276,6 +294,26 @@ mod tests {
         assert_eq!(wrap(4, 4, Wrap::MirroredRepeat), 3);
         assert_eq!(wrap(-1, 4, Wrap::MirroredRepeat), 0);
         assert_eq!(wrap(8, 4, Wrap::MirroredRepeat), 0);
+    }
+
+    #[test]
+    fn the_next_texel_is_the_wrap_of_the_next_coordinate() {
+        for mode in [Wrap::Repeat, Wrap::ClampToEdge, Wrap::MirroredRepeat] {
+            for n in [1u32, 2, 3, 64, 100] {
+                for i in -300i64..300 {
+                    let at = wrap(i, n, mode);
+                    assert!(at < n, "{mode:?} {n} {i}");
+                    assert_eq!(
+                        wrap_next(i, at, n, mode),
+                        wrap(i + 1, n, mode),
+                        "{mode:?} {n} {i}"
+                    );
+                    if mode == Wrap::Repeat {
+                        assert_eq!(at as i64, i.rem_euclid(n as i64));
+                    }
+                }
+            }
+        }
     }
 
     #[test]
