@@ -333,6 +333,7 @@ impl Bsdf {
     /// The BSDF at a surface point for light leaving towards `wo` (world space, unit).
     /// `ng` is the geometric normal as the mesh winds it; `front` says whether `wo` is on
     /// that side, which decides the direction of refraction.
+    #[inline(always)]
     pub fn new(p: &ShadingParams, ng: Vec3, wo: Vec3) -> Bsdf {
         let front = wo.dot(ng) >= 0.0;
         let ng = if front { ng } else { -ng };

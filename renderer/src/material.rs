@@ -246,6 +246,7 @@ pub fn alpha_at<D: SceneData>(
 }
 
 /// Applies the material's textures at a surface point.
+#[inline(always)]
 pub fn shading_params<D: SceneData>(
     scene: &SceneHeader,
     data: &D,
