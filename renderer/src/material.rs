@@ -112,19 +112,8 @@ impl Material {
     /// coordinates if it has a texture, the tangent frame if it has a normal map.
     #[inline]
     pub fn reads(&self) -> Reads {
-        let textured = [
-            &self.base_color_tex,
-            &self.metallic_roughness_tex,
-            &self.normal_tex,
-            &self.emissive_tex,
-            &self.specular_tex,
-            &self.specular_color_tex,
-            &self.transmission_tex,
-        ]
-        .iter()
-        .any(|t| t.is_some());
         Reads {
-            uv: textured,
+            uv: self.textures().next().is_some(),
             frame: self.normal_tex.is_some(),
         }
     }
