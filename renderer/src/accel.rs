@@ -674,6 +674,20 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let undecided = u.eq(zero).or(v.eq(zero)).or(w.eq(zero)).bits();
     let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero)).bits();
     let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero)).bits();
+    // Most triangles a ray is tested against lie beside it: their edge functions disagree
+    // in sign, and nothing below (the division least of all) can make them a hit.
+    let inside = !(negative & positive) & 0xf;
+    if inside & !undecided == 0 {
+        return Lanes {
+            hits: 0,
+            undecided: undecided & 0xf,
+            t: [0.0; 4],
+            u,
+            v,
+            w,
+            inv_det: F32x4::zero(),
+        };
+    }
     let det = u.add(v).add(w);
     let det_abs = det.abs();
     let det_ok = det.ne(zero).and(det_abs.lt(F32x4::splat(f32::INFINITY)));
@@ -685,7 +699,7 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let inv_det = F32x4::splat(1.0).div(det);
     let t = t_scaled.mul(inv_det);
     let t_ok = t.gt(zero).and(t.gt(F32x4::splat(tmax)).not());
-    let maybe = det_ok.and(in_range).and(t_ok).bits() & !(negative & positive) & !undecided & 0xf;
+    let maybe = det_ok.and(in_range).and(t_ok).bits() & inside & !undecided;
     let mut out = Lanes {
         hits: 0,
         undecided: undecided & 0xf,
