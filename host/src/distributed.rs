@@ -1134,40 +1134,78 @@ async fn collect_node_stats(cluster: &mut Cluster) -> Vec<NodeStats> {
     nodes
 }
 
-/// The sums of every node's figures.
+/// The sums of every node's figures. Every field is named (none left to `..`), so a figure
+/// added to [`NodeStats`] cannot be left out of the totals unnoticed.
 fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
-    let mut totals = NodeStats::default();
+    let mut t = NodeStats::default();
     for n in nodes {
-        totals.subscreens += n.subscreens;
-        totals.rows += n.rows;
-        totals.pixels += n.pixels;
-        totals.samples += n.samples;
-        totals.rays += n.rays;
-        totals.camera_rays += n.camera_rays;
-        totals.secondary_rays += n.secondary_rays;
-        totals.shadow_rays += n.shadow_rays;
-        totals.bad_samples += n.bad_samples;
-        totals.cache_peak_bytes += n.cache_peak_bytes;
-        totals.cache_hits += n.cache_hits;
-        totals.cache_misses += n.cache_misses;
-        totals.cache_evictions += n.cache_evictions;
-        totals.bytes_fetched_dma += n.bytes_fetched_dma;
-        totals.bytes_fetched_serial += n.bytes_fetched_serial;
-        totals.bytes_fetched_shared += n.bytes_fetched_shared;
-        totals.shared_segments += n.shared_segments;
-        totals.paths_deferred += n.paths_deferred;
-        totals.deferred_fetches += n.deferred_fetches;
-        totals.bytes_served += n.bytes_served;
-        totals.bytes_gbus += n.bytes_gbus;
-        totals.frames_forwarded += n.frames_forwarded;
-        totals.frames_around_mesh += n.frames_around_mesh;
-        totals.bytes_forwarded += n.bytes_forwarded;
-        totals.busy_s += n.busy_s;
-        totals.waiting_s += n.waiting_s;
-        totals.idle_s += n.idle_s;
-        totals.peak_rss_bytes += n.peak_rss_bytes;
+        let NodeStats {
+            node: _,
+            role: _,
+            subscreens,
+            rows,
+            pixels,
+            samples,
+            rays,
+            camera_rays,
+            secondary_rays,
+            shadow_rays,
+            bad_samples,
+            cache_hits,
+            cache_misses,
+            cache_evictions,
+            cache_peak_bytes,
+            bytes_fetched_dma,
+            bytes_fetched_serial,
+            bytes_fetched_shared,
+            shared_segments,
+            bytes_served,
+            bytes_gbus,
+            frames_forwarded,
+            frames_around_mesh,
+            bytes_forwarded,
+            busy_s,
+            waiting_s,
+            idle_s,
+            peak_rss_bytes,
+            peak_private_bytes,
+            chunks_in_place,
+            paths_deferred,
+            deferred_fetches,
+            records: _,
+        } = n;
+        t.subscreens += subscreens;
+        t.rows += rows;
+        t.pixels += pixels;
+        t.samples += samples;
+        t.rays += rays;
+        t.camera_rays += camera_rays;
+        t.secondary_rays += secondary_rays;
+        t.shadow_rays += shadow_rays;
+        t.bad_samples += bad_samples;
+        t.cache_hits += cache_hits;
+        t.cache_misses += cache_misses;
+        t.cache_evictions += cache_evictions;
+        t.cache_peak_bytes += cache_peak_bytes;
+        t.bytes_fetched_dma += bytes_fetched_dma;
+        t.bytes_fetched_serial += bytes_fetched_serial;
+        t.bytes_fetched_shared += bytes_fetched_shared;
+        t.shared_segments += shared_segments;
+        t.bytes_served += bytes_served;
+        t.bytes_gbus += bytes_gbus;
+        t.frames_forwarded += frames_forwarded;
+        t.frames_around_mesh += frames_around_mesh;
+        t.bytes_forwarded += bytes_forwarded;
+        t.busy_s += busy_s;
+        t.waiting_s += waiting_s;
+        t.idle_s += idle_s;
+        t.peak_rss_bytes += peak_rss_bytes;
+        t.peak_private_bytes += peak_private_bytes;
+        t.chunks_in_place += chunks_in_place;
+        t.paths_deferred += paths_deferred;
+        t.deferred_fetches += deferred_fetches;
     }
-    totals
+    t
 }
 
 /// What a finished render leaves for its statistics.
@@ -1330,5 +1368,49 @@ mod tests {
                 r.len()
             );
         }
+    }
+
+    /// Every figure of the totals is the sum of the nodes' (the stats file's `totals` once
+    /// showed no chunk walked in place while every render node had walked some).
+    #[test]
+    fn totals_sum_every_figure() {
+        let node = |k: u64| NodeStats {
+            node: k as u16,
+            subscreens: k as u32,
+            rows: k,
+            pixels: k,
+            samples: k,
+            rays: k,
+            camera_rays: k,
+            secondary_rays: k,
+            shadow_rays: k,
+            bad_samples: k,
+            cache_hits: k,
+            cache_misses: k,
+            cache_evictions: k,
+            cache_peak_bytes: k,
+            bytes_fetched_dma: k,
+            bytes_fetched_serial: k,
+            bytes_fetched_shared: k,
+            shared_segments: k as u32,
+            bytes_served: k,
+            bytes_gbus: k,
+            frames_forwarded: k,
+            frames_around_mesh: k,
+            bytes_forwarded: k,
+            busy_s: k as f64,
+            waiting_s: k as f64,
+            idle_s: k as f64,
+            peak_rss_bytes: k,
+            peak_private_bytes: k,
+            chunks_in_place: k,
+            paths_deferred: k,
+            deferred_fetches: k,
+            ..NodeStats::default()
+        };
+        let t = sum_node_stats(&[node(1), node(2)]);
+        let mut expected = node(3);
+        expected.node = 0;
+        assert_eq!(t, expected);
     }
 }
