@@ -677,16 +677,18 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     // Most triangles a ray is tested against lie beside it: their edge functions disagree
     // in sign, and nothing below (the division least of all) can make them a hit.
     let inside = !(negative & positive) & 0xf;
+    // What the test answers before it knows any hit: the undecided lanes for the scalar test.
+    let no_hits = |inv_det| Lanes {
+        hits: 0,
+        undecided: undecided & 0xf,
+        t: [0.0; 4],
+        u,
+        v,
+        w,
+        inv_det,
+    };
     if inside & !undecided == 0 {
-        return Lanes {
-            hits: 0,
-            undecided: undecided & 0xf,
-            t: [0.0; 4],
-            u,
-            v,
-            w,
-            inv_det: F32x4::zero(),
-        };
+        return no_hits(F32x4::zero());
     }
     let det = u.add(v).add(w);
     let det_abs = det.abs();
@@ -700,15 +702,7 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let t = t_scaled.mul(inv_det);
     let t_ok = t.gt(zero).and(t.gt(F32x4::splat(tmax)).not());
     let maybe = det_ok.and(in_range).and(t_ok).bits() & inside & !undecided;
-    let mut out = Lanes {
-        hits: 0,
-        undecided: undecided & 0xf,
-        t: [0.0; 4],
-        u,
-        v,
-        w,
-        inv_det,
-    };
+    let mut out = no_hits(inv_det);
     if maybe == 0 {
         return out;
     }
