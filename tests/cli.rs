@@ -435,3 +435,68 @@ fn experiment_speedup_measures_simulates_and_checks_the_findings() {
         assert!(dir.join(png).is_file(), "{png}");
     }
 }
+
+/// relMSE of `image` against `reference`, as `magg-host compare` reports it.
+fn rel_mse(image: &Path, reference: &Path) -> f64 {
+    let o = run(host().arg("compare").arg(image).arg(reference));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    out.lines()
+        .find_map(|l| l.strip_prefix("relMSE "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no relMSE in {out:?}"))
+}
+
+/// The demo scene is denoised unless told not to (a biased filter, on for the demo alone):
+/// 8 samples a pixel denoised come much nearer a 256-sample render than 8 samples as
+/// sampled (same clamping), and a scene file is left as sampled unless `--denoise on` is
+/// given.
+#[test]
+fn the_demo_is_denoised_and_scene_files_are_not_unless_asked() {
+    let dir = scratch("denoise");
+    let render = |name: &str, extra: &[&str]| {
+        let out = dir.join(name);
+        let o = run(host()
+            .args([
+                "render",
+                "--in-process",
+                "--quiet",
+                "--width",
+                "80",
+                "--height",
+                "60",
+            ])
+            .args(["--clamp-indirect", "4"])
+            .args(extra)
+            .arg("-o")
+            .arg(&out));
+        assert!(o.status.success(), "{}", stderr(&o));
+        out
+    };
+    let converged = render(
+        "converged.pfm",
+        &["--spp", "256", "--seed", "9", "--denoise", "off"],
+    );
+    let raw = render("raw.pfm", &["--spp", "8", "--denoise", "off"]);
+    let denoised = render("denoised.pfm", &["--spp", "8"]);
+    let (e_raw, e_denoised) = (rel_mse(&raw, &converged), rel_mse(&denoised, &converged));
+    assert!(
+        e_denoised < e_raw / 2.5,
+        "denoised relMSE {e_denoised:.3e}, as sampled {e_raw:.3e}"
+    );
+
+    let cornell = data().join("scenes/cornell/cornell.gltf");
+    let cornell = cornell.to_str().unwrap();
+    // (The clamp given above changes nothing here: the Cornell box has no caustics.)
+    let plain = render("cornell.pfm", &[cornell, "--spp", "2"]);
+    let off = render(
+        "cornell-off.pfm",
+        &[cornell, "--spp", "2", "--denoise", "off"],
+    );
+    let on = render(
+        "cornell-on.pfm",
+        &[cornell, "--spp", "2", "--denoise", "on"],
+    );
+    same_bytes(&plain, &off);
+    assert_ne!(std::fs::read(&plain).unwrap(), std::fs::read(&on).unwrap());
+}

@@ -390,6 +390,8 @@ async fn drive(
         lost: Vec::new(),
     };
     let chunk_triangles = rc.prepare.chunk_triangles as u32;
+    // The denoiser's guides are traced here, from the host's own copy of the scene.
+    let for_guides = rc.denoise.then(|| desc.clone());
     let (scene_sha256, encoded) = upload_scene(&f, desc, chunk_triangles)?;
     let placed = await_header(cluster, cancel, &mut faults).await?;
     let scene = placed.scene;
@@ -418,6 +420,14 @@ async fn drive(
     )
     .map_err(RenderError::from)?;
     send_job(&f, &plan.job)?;
+    // Traced while the cluster renders.
+    let guides = for_guides.map(|desc| {
+        let (camera, prepare, threads) = (plan.job.camera.clone(), rc.prepare, rc.threads);
+        tokio::task::spawn_blocking(move || {
+            let (scene, data) = renderer::prepare(desc, &prepare);
+            renderer::denoise::guides(&scene, &data, &camera, width, height, threads)
+        })
+    });
 
     let t1 = Instant::now();
     let mut frame = Rendering::new(config, &plan, &faults, f.clone(), kept, copy, t1);
@@ -436,8 +446,26 @@ async fn drive(
         .collect();
     drain_requests(cluster, &f, owed).await;
 
+    let t_denoise = Instant::now();
+    let denoised = match guides {
+        Some(task) => {
+            let guides = task
+                .await
+                .expect("the denoiser's guide tracing panicked")
+                .map_err(RenderError::Render)?;
+            Some(renderer::denoise::denoise(
+                &frame.kept.image,
+                &guides,
+                rc.threads,
+            ))
+        }
+        None => None,
+    };
+    let denoise_s = t_denoise.elapsed().as_secs_f64();
+
     let t2 = Instant::now();
-    scene_io::write_image(&rc.output, &frame.kept.image).map_err(RenderError::Output)?;
+    scene_io::write_image(&rc.output, denoised.as_ref().unwrap_or(&frame.kept.image))
+        .map_err(RenderError::Output)?;
     // The image is whole: its checkpoint, if one was written, has served.
     let _ = std::fs::remove_file(&frame.checkpoint_path);
     let write_s = t2.elapsed().as_secs_f64();
@@ -446,6 +474,7 @@ async fn drive(
     let seconds = crate::stats::Seconds {
         load: load_s,
         render: render_s,
+        denoise: denoise_s,
         write: write_s,
         total: t0.elapsed().as_secs_f64(),
     };

@@ -42,6 +42,9 @@ pub struct RenderConfig {
     pub resume: bool,
     /// How often the checkpoint of a render in progress is replaced.
     pub checkpoint_interval: std::time::Duration,
+    /// Filter the finished image with the edge-aware denoiser (biased; see
+    /// [`renderer::denoise`]).
+    pub denoise: bool,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -294,6 +297,19 @@ fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
     })
 }
 
+/// `image` denoised with guides traced through the scene from `camera`.
+pub(crate) fn denoised<D: renderer::SceneData + Sync>(
+    image: &renderer::Image,
+    scene: &renderer::SceneHeader,
+    data: &D,
+    camera: &renderer::Camera,
+    threads: usize,
+) -> Result<renderer::Image, RenderError> {
+    let guides =
+        renderer::denoise::guides(scene, data, camera, image.width, image.height, threads)?;
+    Ok(renderer::denoise::denoise(image, &guides, threads))
+}
+
 /// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)
 /// once `cancel` is set.
 pub fn render_in_process_until(
@@ -367,6 +383,14 @@ pub fn render_in_process_until(
     let (image, trace) = rendered.map_err(|e| keeper.into_inner().expect("lock").ended_early(e))?;
     let render_s = t1.elapsed().as_secs_f64();
 
+    let t_denoise = Instant::now();
+    let image = if config.denoise {
+        denoised(&image, &scene, &data, &camera, config.threads)?
+    } else {
+        image
+    };
+    let denoise_s = t_denoise.elapsed().as_secs_f64();
+
     let t2 = Instant::now();
     scene_io::write_image(&config.output, &image)?;
     // The image is whole: its checkpoint, if one was written, has served.
@@ -396,6 +420,7 @@ pub fn render_in_process_until(
     };
     stats.seconds.load = load_s;
     stats.seconds.render = render_s;
+    stats.seconds.denoise = denoise_s;
     stats.seconds.write = write_s;
     stats.seconds.total = t0.elapsed().as_secs_f64();
     stats.set_trace(&trace);

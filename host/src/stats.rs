@@ -9,6 +9,8 @@ use serde::{Deserialize, Serialize};
 pub struct Seconds {
     pub load: f64,
     pub render: f64,
+    /// Tracing the denoiser's guides and filtering (0 when the image is not denoised).
+    pub denoise: f64,
     pub write: f64,
     pub total: f64,
 }

@@ -11,6 +11,7 @@ pub mod bvh;
 pub mod camera;
 pub mod chunk;
 pub mod demo;
+pub mod denoise;
 pub mod integrator;
 pub mod light;
 pub mod material;
