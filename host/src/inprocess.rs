@@ -305,9 +305,17 @@ pub(crate) fn denoised<D: renderer::SceneData + Sync>(
     camera: &renderer::Camera,
     threads: usize,
 ) -> Result<renderer::Image, RenderError> {
+    let t0 = Instant::now();
     let guides =
         renderer::denoise::guides(scene, data, camera, image.width, image.height, threads)?;
-    Ok(renderer::denoise::denoise(image, &guides, threads))
+    let t1 = Instant::now();
+    let denoised = renderer::denoise::denoise(image, &guides, threads);
+    tracing::debug!(
+        "denoiser: guides traced in {:.3} s, image filtered in {:.3} s",
+        (t1 - t0).as_secs_f64(),
+        t1.elapsed().as_secs_f64()
+    );
+    Ok(denoised)
 }
 
 /// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)

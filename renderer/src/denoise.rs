@@ -95,7 +95,10 @@ pub fn guides<D: SceneData + Sync>(
     threads: usize,
 ) -> Result<Guides, DataError> {
     let rays = camera.rays(width, height);
+    // Where a ray that leaves the scene is taken to end (an empty scene's bounds are not
+    // finite).
     let far = (scene.bounds_max - scene.bounds_min).length().max(1.0) * 1e3;
+    let far = if far.is_finite() { far } else { 1e6 };
     let row_guides = |y: u32, out: &mut [GuidePixel]| -> Result<(), DataError> {
         let t = Tracer::new(scene, data);
         for (x, px) in (0..width).zip(out.iter_mut()) {
