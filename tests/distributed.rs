@@ -138,6 +138,8 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
 
 #[test]
 fn tiny_cluster_matches_in_every_mode() {
+    // The demo scene, denoised by default: the host filters the finished image, so the
+    // filter's output is compared too.
     let dir = scratch("tiny-modes");
     let size = [
         "--width", "96", "--height", "64", "--spp", "3", "--seed", "5",
