@@ -71,9 +71,10 @@ pub struct GuidePixel {
     pub position: Vec3,
     /// The width of a pixel at `position`, in scene units.
     pub footprint: f32,
-    /// The share of the pixel's guide rays that found a light's surface. Such pixels are
-    /// left as they are and lend nothing to others: a light's brightness is no noise, and
-    /// its image in a mirror lies on the same plane as what surrounds it.
+    /// The share of the pixel's guide rays that found a light's surface. Such pixels, and
+    /// their neighbours, are left as they are and lend nothing to others: a light's
+    /// brightness is no noise, its image in a mirror lies on the same plane as what
+    /// surrounds it, and four guide rays may miss a light that covers part of a pixel.
     pub emitter: f32,
 }
 
