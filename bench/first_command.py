@@ -3,14 +3,14 @@
 scene on the default 86-process cluster, default flags) timed as a user waits for it, and its
 error against a 4096-spp render of the same scene.
 
-    python3 bench/first_command.py [--runs 3] [--spp 32 64] [--host target/release/magg-host]
+    python3 bench/first_command.py [--runs 3] [--spp 24 32] [--host target/release/magg-host]
         [--reference-spp 4096] [--clamped-reference] [--denoise off] [--out bench/out]
 
 The unbiased reference (`--clamp-indirect 0 --denoise off`, another seed, so that its samples
 are not the ones measured) is rendered once in one process and kept under `--out` (about 20
 to 35 minutes on two cores at 4096 spp); `--clamped-reference` also renders one with the
 runs' clamping, not denoised, against which an undenoised run's error is its noise alone. Each run is the first command with `--spp S` added where S
-differs from the default (32 spp, denoised, indirect light clamped at 8), writing linear
+differs from the default (24 spp, denoised, indirect light clamped at 8), writing linear
 floats (`-o X.pfm`: the first command's PNG is the same render, quantised); `--denoise off`
 times the demo as sampled instead (64 spp by default then, clamped at 4). relMSE comes from
 `magg-host compare`. Target (issue 12, item 4):
@@ -28,7 +28,7 @@ import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DEFAULT_SPP = {"on": 32, "off": 64}
+DEFAULT_SPP = {"on": 24, "off": 64}
 DEMO_CLAMP = {"on": 8, "off": 4}
 TARGET_SECONDS = 15.0
 TARGET_REL_MSE = 5e-3
