@@ -500,3 +500,36 @@ fn the_demo_is_denoised_and_scene_files_are_not_unless_asked() {
     same_bytes(&plain, &off);
     assert_ne!(std::fs::read(&plain).unwrap(), std::fs::read(&on).unwrap());
 }
+
+/// `magg-host compare A B | head -1`: a reader that goes away before the figures are
+/// written is no error, and no panic.
+#[test]
+fn compare_into_a_closed_pipe_is_no_error() {
+    let dir = scratch("compare-pipe");
+    let image = dir.join("a.pfm");
+    let o = run(host()
+        .args([
+            "render",
+            "--in-process",
+            "--quiet",
+            "--width",
+            "16",
+            "--height",
+            "16",
+        ])
+        .args(["--spp", "1", "-o"])
+        .arg(&image));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut child = host()
+        .arg("compare")
+        .arg(&image)
+        .arg(&image)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+}

@@ -298,7 +298,7 @@ fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
 }
 
 /// `image` denoised with guides traced through the scene from `camera`.
-pub(crate) fn denoised<D: renderer::SceneData + Sync>(
+fn denoised<D: renderer::SceneData + Sync>(
     image: &renderer::Image,
     scene: &renderer::SceneHeader,
     data: &D,

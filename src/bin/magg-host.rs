@@ -1421,16 +1421,21 @@ fn main() {
             let b = scene_io::read_image(&reference)
                 .with_context(|| format!("reading {}", reference.display()))?;
             let c = lab::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
-            println!("relMSE {:.6e}", c.rel_mse);
+            let mut text = format!("relMSE {:.6e}\n", c.rel_mse);
             for (i, ch) in ["R", "G", "B"].iter().enumerate() {
-                println!(
-                    "mean {ch}: {:.5} vs {:.5} ({:+.3}%)",
+                text += &format!(
+                    "mean {ch}: {:.5} vs {:.5} ({:+.3}%)\n",
                     c.mean_a[i],
                     c.mean_b[i],
                     c.mean_rel_diff[i] * 100.0
                 );
             }
-            Ok(())
+            // A reader that stops early (`| head -1`, as scripts read the first line) is
+            // no error; `println!` would panic.
+            match std::io::Write::write_all(&mut std::io::stdout().lock(), text.as_bytes()) {
+                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+                r => r.context("writing to standard output"),
+            }
         })(),
     };
     if let Err(e) = result {
