@@ -455,23 +455,8 @@ fn rel_mse(image: &Path, reference: &Path) -> f64 {
 fn the_demo_is_denoised_and_scene_files_are_not_unless_asked() {
     let dir = scratch("denoise");
     let render = |name: &str, extra: &[&str]| {
-        let out = dir.join(name);
-        let o = run(host()
-            .args([
-                "render",
-                "--in-process",
-                "--quiet",
-                "--width",
-                "80",
-                "--height",
-                "60",
-            ])
-            .args(["--clamp-indirect", "4"])
-            .args(extra)
-            .arg("-o")
-            .arg(&out));
-        assert!(o.status.success(), "{}", stderr(&o));
-        out
+        let size = ["--width", "80", "--height", "60", "--clamp-indirect", "4"];
+        in_process_to(&dir.join(name), &[&size[..], extra].concat())
     };
     let converged = render(
         "converged.pfm",
@@ -506,20 +491,10 @@ fn the_demo_is_denoised_and_scene_files_are_not_unless_asked() {
 #[test]
 fn compare_into_a_closed_pipe_is_no_error() {
     let dir = scratch("compare-pipe");
-    let image = dir.join("a.pfm");
-    let o = run(host()
-        .args([
-            "render",
-            "--in-process",
-            "--quiet",
-            "--width",
-            "16",
-            "--height",
-            "16",
-        ])
-        .args(["--spp", "1", "-o"])
-        .arg(&image));
-    assert!(o.status.success(), "{}", stderr(&o));
+    let image = in_process_to(
+        &dir.join("a.pfm"),
+        &["--width", "16", "--height", "16", "--spp", "1"],
+    );
     let mut child = host()
         .arg("compare")
         .arg(&image)

@@ -390,9 +390,10 @@ async fn drive(
         lost: Vec::new(),
     };
     let chunk_triangles = rc.prepare.chunk_triangles as u32;
-    // The denoiser's guides are traced here, from the host's own copy of the scene.
-    let for_guides = rc.denoise.then(|| desc.clone());
-    let (scene_sha256, encoded) = upload_scene(&f, desc, chunk_triangles)?;
+    let (scene_sha256, encoded) = upload_scene(&f, &desc, chunk_triangles)?;
+    // The denoiser's guides are traced here, from the host's own copy of the scene; without
+    // them the copy goes now.
+    let for_guides = rc.denoise.then_some(desc);
     let placed = await_header(cluster, cancel, &mut faults).await?;
     let scene = placed.scene;
     let copy = HostCopy {
@@ -504,12 +505,11 @@ async fn drive(
 /// rebuild a lost fork node's share from.
 fn upload_scene(
     f: &fabric::Fabric,
-    desc: renderer::SceneDesc,
+    desc: &renderer::SceneDesc,
     chunk_triangles: u32,
 ) -> Result<(String, Vec<u8>), ClusterRenderError> {
     let master = f.topology().master_fork();
-    let bytes = encode_value(&desc);
-    drop(desc);
+    let bytes = encode_value(desc);
     let digest = checkpoint::digest_of_encoded(&bytes);
     const PART: usize = 16 << 20;
     let parts = bytes.len().div_ceil(PART).max(1) as u32;

@@ -322,25 +322,17 @@ pub fn denoise(image: &Image, guides: &Guides, threads: usize) -> Image {
         frozen: &frozen,
     };
     let mut variance = spatial_variance(&colour, &grid, threads);
-    let mut next_colour = colour.clone();
-    let mut next_variance = variance.clone();
     for pass in 0..PASSES {
         let step = 1usize << pass;
         let blurred = blur3(&variance, w, h);
-        let (colour_in, var_in, blurred) = (&colour, &variance, &blurred);
-        let mut pairs: Vec<(Vec3, f32)> = vec![(Vec3::ZERO, 0.0); w * h];
-        for_bands(&mut pairs, w, threads, |first_row, band| {
+        let mut filtered: Vec<(Vec3, f32)> = vec![(Vec3::ZERO, 0.0); w * h];
+        for_bands(&mut filtered, w, threads, |first_row, band| {
             for (i, slot) in band.iter_mut().enumerate() {
                 let p = first_row * w + i;
-                *slot = filter_pixel(p, step, colour_in, var_in, blurred, &grid);
+                *slot = filter_pixel(p, step, &colour, &variance, &blurred, &grid);
             }
         });
-        for (p, (c, v)) in pairs.into_iter().enumerate() {
-            next_colour[p] = c;
-            next_variance[p] = v;
-        }
-        std::mem::swap(&mut colour, &mut next_colour);
-        std::mem::swap(&mut variance, &mut next_variance);
+        (colour, variance) = filtered.into_iter().unzip();
     }
     Image {
         width: image.width,

@@ -85,14 +85,18 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
 /// Renders `args` (a scene and render flags) in one process into `dir`; the reference a
 /// cluster's image must equal byte for byte.
 pub fn in_process<S: AsRef<std::ffi::OsStr>>(dir: &Path, args: &[S]) -> PathBuf {
-    let out = dir.join("one-process.png");
+    in_process_to(&dir.join("one-process.png"), args)
+}
+
+/// As [`in_process`], into `out`.
+pub fn in_process_to<S: AsRef<std::ffi::OsStr>>(out: &Path, args: &[S]) -> PathBuf {
     let o = run(host()
         .args(["render", "--quiet", "--in-process"])
         .args(args)
         .arg("-o")
-        .arg(&out));
+        .arg(out));
     assert!(o.status.success(), "{}", stderr(&o));
-    out
+    out.to_path_buf()
 }
 
 /// A process whose stderr is collected line by line as it runs.
