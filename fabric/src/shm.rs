@@ -5,8 +5,10 @@
 //! random nonce written into its header. A render node that can open the file, map it and
 //! find that nonce shares the machine with the fork node and reads from the mapping; one that
 //! cannot (another machine, a container without the fork node's IPC namespace, a stale or
-//! foreign file) stays on TCP. Either way the render node validates what it reads exactly as
-//! it validates bytes from a socket: the segment is trusted no more than the network.
+//! foreign file) stays on TCP. Either way the render node checks what it reads before it
+//! uses it: the segment is trusted no more than the network (see
+//! `renderer::chunk::Chunk::from_region` for what is checked up front and what where it is
+//! read).
 //!
 //! Besides an item's words as they travel, a segment can hold a chunk's walking form (the
 //! tree as rays walk it, which each render node would otherwise compute for itself from the
@@ -261,7 +263,7 @@ impl Segment {
         }
         // SAFETY: the mapping is read-only, of a file the fork node wrote completely before
         // announcing it and never writes again (it is read-only for everyone). What is read
-        // in place is validated as bytes from a socket are, and the walk reads everything
+        // in place is checked before use (`Chunk::from_region`), and the walk reads everything
         // with bounds checks, so what the words hold cannot break this process; a file
         // truncated by someone else after this size check would fault on access, which no
         // magg process does.

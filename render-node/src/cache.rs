@@ -16,7 +16,7 @@
 //! the chunk transcoded for the walk) and then used in place. A DMA read of a chunk from a
 //! card whose shared-memory segment this node mapped ([`crate::shared`]) copies nothing: the
 //! chunk's words and its walking form (which the fork node transcoded once for the card)
-//! are validated where they lie in the mapping and walked there, and a tile's texels are
+//! are checked where they lie in the mapping and walked there, and a tile's texels are
 //! read there. The budget and the least-recently-used order count such items exactly as
 //! copied ones, so what is fetched and evicted does not depend on the transport; only the
 //! copy and the node's memory go.

@@ -142,6 +142,11 @@ impl Bounds {
 pub struct Bvh8 {
     pub nodes: Region<Node8>,
     pub leaves: Region<Tri4>,
+    /// The chunk's triangle count: a leaf lane naming a triangle at or above it is never
+    /// reported. Trees built here name none; a tree read in place ([`Bvh8::in_block`]) is
+    /// checked for its shape only, and this is where its triangle ids are checked instead,
+    /// as they are used (one compare per hit, not a pass over every leaf of the chunk).
+    pub tris: u32,
 }
 
 /// Why a walking form found in a block cannot be walked.
@@ -259,6 +264,7 @@ impl Bvh8 {
         Bvh8 {
             nodes: nodes.into(),
             leaves: leaves.into(),
+            tris: positions.len() as u32,
         }
     }
 
@@ -286,6 +292,7 @@ impl Bvh8 {
         Bvh8 {
             nodes: nodes.into(),
             leaves: Region::empty(),
+            tris: 0,
         }
     }
 
@@ -307,10 +314,11 @@ impl Bvh8 {
     }
 
     /// The tree [`Bvh8::to_words`] wrote at words `start..end` of `block`, walked in place,
-    /// after checking that it is a tree over triangles `0..tri_count`: every child in range
-    /// and reached once from the root, every leaf in range, every triangle index below
-    /// `tri_count`. Boxes are taken as they are: wrong ones can make rays miss, as wrong
-    /// triangles can, but not read out of bounds or loop.
+    /// after checking that it is a tree: every child in range and reached once from the
+    /// root, every leaf in range. Triangle ids are checked as hits are reported (against
+    /// `tri_count`, see [`Bvh8::tris`]): a check of every leaf here would read the whole
+    /// tree, on every render node, before its first ray. Boxes and triangles are taken as
+    /// they are: wrong ones can make rays miss, but not read out of bounds or loop.
     pub fn in_block(
         block: Arc<dyn Block>,
         start: usize,
@@ -339,8 +347,9 @@ impl Bvh8 {
             nodes: Region::in_block(block.clone(), start + WALK_HEADER_WORDS, nodes_end)
                 .ok_or(WalkFormError::Layout)?,
             leaves: Region::in_block(block, nodes_end, leaves_end).ok_or(WalkFormError::Layout)?,
+            tris: tri_count,
         };
-        bvh.validate(tri_count)?;
+        bvh.validate()?;
         Ok(bvh)
     }
 
@@ -348,16 +357,8 @@ impl Bvh8 {
     /// stack is made for (as `bvh::validate_tree` does for the wire form), with every child
     /// after its parent, as our builder writes them. A slot whose child is node 0 (the root,
     /// nobody's child) must be empty: boxes no ray enters.
-    fn validate(&self, tri_count: u32) -> Result<(), WalkFormError> {
+    fn validate(&self) -> Result<(), WalkFormError> {
         let bad = |what: String| Err(WalkFormError::NotATree(what));
-        let too_high = self.leaves.iter().fold(0u32, |n, b| {
-            n | b.id.iter().fold(0, |n, &t| n | u32::from(t >= tri_count))
-        });
-        if too_high != 0 {
-            return bad(format!(
-                "a leaf names a triangle beyond the chunk's {tri_count}"
-            ));
-        }
         if self.nodes.is_empty() {
             return Ok(());
         }
@@ -772,6 +773,7 @@ fn lane_points(b: &Tri4, lane: usize) -> (glam::Vec3A, glam::Vec3A, glam::Vec3A)
 fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
     q: &RayQuery,
     block: &Tri4,
+    tris: u32,
     chunk: u32,
     best: &mut Closest,
     accept: &mut A,
@@ -810,6 +812,9 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
         }
         left &= !(1 << pick);
         let tri = block.id[pick];
+        if tri >= tris {
+            continue;
+        }
         if !best.beaten_by(t[pick], chunk, tri) {
             return false;
         }
@@ -833,6 +838,7 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
 fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
     q: &RayQuery,
     block: &Tri4,
+    tris: u32,
     tmax: f32,
     f: &mut F,
 ) -> Visit {
@@ -843,7 +849,7 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
         let lane = m.trailing_zeros() as usize;
         m &= m - 1;
         let tri = block.id[lane];
-        if reported.contains(&tri) {
+        if tri >= tris || reported.contains(&tri) {
             continue;
         }
         reported[lane] = tri;
@@ -885,7 +891,7 @@ impl Bvh8 {
         // through the top-level box of the chunk, which holds the leaf's: its own tree would
         // only test that box again. Boxes only prune, so skipping one changes no hit.
         if let [b] = &self.leaves[..] {
-            return q.is_finite() && closest_in_leaf(q, b, chunk, best, &mut accept);
+            return q.is_finite() && closest_in_leaf(q, b, self.tris, chunk, best, &mut accept);
         }
         let mut found = false;
         let mut tmax = best.t;
@@ -896,7 +902,7 @@ impl Bvh8 {
             |l| self.prefetch_leaf(l),
             |leaf, tmax| {
                 if let Some(b) = self.leaves.get(leaf as usize)
-                    && closest_in_leaf(q, b, chunk, best, &mut accept)
+                    && closest_in_leaf(q, b, self.tris, chunk, best, &mut accept)
                 {
                     *tmax = best.t;
                     found = true;
@@ -914,7 +920,7 @@ impl Bvh8 {
         // One leaf: straight to it, as in `closest`.
         if let [b] = &self.leaves[..] {
             if q.is_finite() {
-                hits_in_leaf(q, b, tmax, &mut f);
+                hits_in_leaf(q, b, self.tris, tmax, &mut f);
             }
             return;
         }
@@ -925,7 +931,7 @@ impl Bvh8 {
             &mut t,
             |l| self.prefetch_leaf(l),
             |leaf, _| match self.leaves.get(leaf as usize) {
-                Some(b) => hits_in_leaf(q, b, tmax, &mut f),
+                Some(b) => hits_in_leaf(q, b, self.tris, tmax, &mut f),
                 None => Visit::Continue,
             },
         );
@@ -1098,10 +1104,26 @@ mod tests {
             refused(&|b| set(b, LEAF | leaves), tris),
             WalkFormError::NotATree(_)
         ));
-        assert!(matches!(
-            refused(&|_| {}, tris - 1),
-            WalkFormError::NotATree(_)
-        ));
+        // Triangle ids are checked as hits are reported: read as a tree over one triangle
+        // fewer, the last triangle is never hit, by either query, and the others still are.
+        let (block, start, end) = aligned_block(&words);
+        let fewer = Bvh8::in_block(block, start, end, tris - 1).unwrap();
+        let hits = |b: &Bvh8, tri: u32| {
+            let (v0, v1, v2) = crate::chunk::tri_points(&chunk.tri_positions()[tri as usize]);
+            let centre = (v0 + v1 + v2) / 3.0;
+            let q = RayQuery::new(&Ray::new(centre + Vec3A::Z, -Vec3A::Z, f32::INFINITY));
+            let mut best = Closest::new(f32::INFINITY);
+            b.closest(&q, 0, &mut best, |_, _| true);
+            let mut any = Vec::new();
+            b.each_hit(&q, f32::INFINITY, |t, _| {
+                any.push(t);
+                Visit::Continue
+            });
+            (best.hit.map(|_| best.tri), any)
+        };
+        assert_eq!(hits(bvh, tris - 1), (Some(tris - 1), vec![tris - 1]));
+        assert_eq!(hits(&fewer, tris - 1), (None, vec![]));
+        assert_eq!(hits(&fewer, 0), (Some(0), vec![0]));
         // Cut short, misplaced or not a walking form at all.
         let (block, start, end) = aligned_block(&words);
         assert_eq!(

@@ -260,6 +260,7 @@ impl Tlas {
         static NONE: Bvh8 = Bvh8 {
             nodes: Region::empty(),
             leaves: Region::empty(),
+            tris: 0,
         };
         self.accel.0.get().unwrap_or(&NONE)
     }
