@@ -761,6 +761,14 @@ pub fn build_chunk_from(
 }
 
 impl Chunk {
+    /// Sets the chunk's id (done once every chunk of the scene is built, in order).
+    pub fn set_chunk_id(&mut self, id: u32) {
+        let header: &mut ChunkHeader = bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(
+            &mut self.words.make_mut()[..HEADER_WORDS],
+        ));
+        header.chunk_id = id;
+    }
+
     /// Sets the light index of the first triangle (done once the scene's light list exists).
     pub fn set_light_base(&mut self, base: u32) {
         let header: &mut ChunkHeader = bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(

@@ -469,35 +469,97 @@ pub enum SceneError {
     Invalid(String),
 }
 
-/// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
-/// light list and cuts textures into tiles. Deterministic.
-pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
-    let mut chunks: Vec<Chunk> = Vec::new();
-    let mut remap = Vec::new();
-    let mut builder = bvh::Builder::default();
-    for (mesh_id, mesh) in desc.meshes.iter().enumerate() {
-        let mut work = chunk::split_mesh(mesh, opts.chunk_triangles);
-        work.reverse();
-        while let Some(piece) = work.pop() {
-            if piece.is_empty() {
-                continue;
+/// The chunks of `meshes`: each mesh cut into pieces (`chunk::split_mesh`), each piece's
+/// tree built and the piece written as a chunk, in mesh order and piece order, numbered in
+/// that order. Pieces are built on up to `threads` threads, each on its own, so the chunks
+/// are the same bytes whatever the number of threads (a scene of a million triangles takes
+/// a third of a second on one: the first render of a large scene waits for it, and so does
+/// a cluster, whose other processes are idle meanwhile).
+fn build_chunks(meshes: &[MeshData], opts: &PrepareOptions, threads: usize) -> Vec<Chunk> {
+    let pieces: Vec<(usize, Vec<u32>)> = meshes
+        .iter()
+        .enumerate()
+        .flat_map(|(m, mesh)| {
+            chunk::split_mesh(mesh, opts.chunk_triangles)
+                .into_iter()
+                .filter(|p| !p.is_empty())
+                .map(move |p| (m, p))
+        })
+        .collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let work = || {
+        let mut builder = bvh::Builder::default();
+        let mut remap = Vec::new();
+        let mut done = Vec::new();
+        loop {
+            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let Some((m, piece)) = pieces.get(i) else {
+                return done;
+            };
+            done.push((
+                i,
+                piece_chunks(&meshes[*m], *m as u32, piece, &mut builder, &mut remap),
+            ));
+        }
+    };
+    let threads = threads.clamp(1, pieces.len().max(1));
+    let mut built: Vec<(usize, Vec<Chunk>)> = if threads == 1 {
+        work()
+    } else {
+        std::thread::scope(|scope| {
+            let others: Vec<_> = (1..threads).map(|_| scope.spawn(work)).collect();
+            let mut all = work();
+            for t in others {
+                // A panic in a builder thread is a bug here, not bad input: pass it on.
+                all.extend(t.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
             }
-            let id = chunks.len() as u32;
-            let mut wide = builder.build(&chunk::triangle_boxes(mesh, &piece), bvh::MAX_LEAF);
-            for t in &mut wide.order {
-                *t = piece[*t as usize];
-            }
-            match chunk::build_chunk_from(mesh, &wide, id, mesh_id as u32, &mut remap) {
-                Some(c) => chunks.push(c),
-                None => {
-                    // Too deep a tree (coincident triangles): halve and retry.
-                    let mid = piece.len() / 2;
-                    work.push(piece[mid..].to_vec());
-                    work.push(piece[..mid].to_vec());
-                }
+            all
+        })
+    };
+    built.sort_unstable_by_key(|(i, _)| *i);
+    let mut chunks: Vec<Chunk> = built.into_iter().flat_map(|(_, c)| c).collect();
+    for (id, c) in chunks.iter_mut().enumerate() {
+        c.set_chunk_id(id as u32);
+    }
+    chunks
+}
+
+/// The chunks of one piece of mesh `mesh_id`: one, or more where a tree came out too deep
+/// (coincident triangles) and the piece was halved, in the order of its triangles.
+fn piece_chunks(
+    mesh: &MeshData,
+    mesh_id: u32,
+    piece: &[u32],
+    builder: &mut bvh::Builder,
+    remap: &mut Vec<u32>,
+) -> Vec<Chunk> {
+    let mut out = Vec::new();
+    let mut work = vec![piece.to_vec()];
+    while let Some(piece) = work.pop() {
+        if piece.is_empty() {
+            continue;
+        }
+        let mut wide = builder.build(&chunk::triangle_boxes(mesh, &piece), bvh::MAX_LEAF);
+        for t in &mut wide.order {
+            *t = piece[*t as usize];
+        }
+        match chunk::build_chunk_from(mesh, &wide, 0, mesh_id, remap) {
+            Some(c) => out.push(c),
+            None => {
+                let mid = piece.len() / 2;
+                work.push(piece[mid..].to_vec());
+                work.push(piece[..mid].to_vec());
             }
         }
     }
+    out
+}
+
+/// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
+/// light list and cuts textures into tiles. Deterministic.
+pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut chunks = build_chunks(&desc.meshes, opts, threads);
 
     // Bounds of everything.
     let mut bounds = Aabb::empty();
@@ -731,6 +793,56 @@ mod pod_vec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn chunks_are_the_same_bytes_and_ids_on_any_number_of_threads() {
+        // Meshes of several sizes, in pieces of at most 50 triangles, one of them a stack of
+        // the same triangle (a tree too deep for the walk: the piece is halved and rebuilt).
+        let grid = |n: u32, z: f32, material: u32| {
+            let mut m = MeshData {
+                material,
+                ..MeshData::default()
+            };
+            for j in 0..=n {
+                for i in 0..=n {
+                    let wave = ((i * 7 + j * 3) % 5) as f32 * 0.1;
+                    m.positions.push(Vec3::new(i as f32, j as f32, z + wave));
+                }
+            }
+            for j in 0..n {
+                for i in 0..n {
+                    let a = j * (n + 1) + i;
+                    m.triangles.push([a, a + 1, a + n + 2]);
+                    m.triangles.push([a, a + n + 2, a + n + 1]);
+                }
+            }
+            m
+        };
+        let mut stack = grid(1, 0.0, 2);
+        stack.triangles = vec![[0, 1, 3]; 300];
+        let meshes = vec![grid(20, 0.0, 0), stack, grid(3, 5.0, 1), grid(13, -2.0, 0)];
+        let opts = PrepareOptions {
+            chunk_triangles: 50,
+        };
+        let one = build_chunks(&meshes, &opts, 1);
+        let stacked = one.iter().filter(|c| c.header().mesh_id == 1).count();
+        assert!(
+            stacked > 300 / 50,
+            "the stack's pieces were halved: {stacked} chunks"
+        );
+        assert!(one.len() > 20, "{} chunks", one.len());
+        for (id, c) in one.iter().enumerate() {
+            assert_eq!(c.header().chunk_id, id as u32);
+        }
+        for threads in [2, 3, 8] {
+            assert_eq!(
+                build_chunks(&meshes, &opts, threads),
+                one,
+                "{threads} threads"
+            );
+        }
+        assert!(build_chunks(&[], &opts, 4).is_empty());
+    }
 
     #[test]
     fn a_received_triangle_light_must_agree_with_its_corners() {
