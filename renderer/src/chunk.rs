@@ -192,8 +192,9 @@ impl Chunk {
     /// instead: a triangle id out of range is never hit, a vertex index out of range reads
     /// NaN (a bad sample, counted in the stats), a value that is not finite makes the samples
     /// that meet it bad. Checking them up front would mean reading the whole chunk before
-    /// its first ray, on every render node of the card: on an 86-process cluster that was a
-    /// sixth of all the CPU time of a render, for data most rays never touch.
+    /// its first ray, on every render node of the card: on an 86-process cluster that was an
+    /// eighth of all the CPU time of a render (and more in faulting the pages in), for data
+    /// most rays never touch.
     pub fn from_region(words: Region<u32>, walk: Option<WalkPlace>) -> Result<Chunk, ChunkError> {
         if words.len() < HEADER_WORDS {
             return Err(ChunkError::TooShort(words.len() * 4));

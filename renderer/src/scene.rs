@@ -558,7 +558,9 @@ fn piece_chunks(
 /// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
 /// light list and cuts textures into tiles. Deterministic.
 pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Each thread keeps a vertex map as long as the largest mesh: eight bound that memory on
+    // a large machine, where reading the file takes longer than building by then.
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
     let mut chunks = build_chunks(&desc.meshes, opts, threads);
 
     // Bounds of everything.
