@@ -109,6 +109,19 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     // Coherent rays (the default): paths waited for chunks and tiles the full cache lacked.
     assert_eq!(v["coherent_rays"], true);
     assert_eq!(v["ask_ahead"], true, "the default");
+    // With links of no delay model, requests for work go straight to the host: they do not
+    // cross the fork nodes, which through the mesh each of 4 cards' requests and answers do.
+    assert_eq!(v["ask_via"], "control", "the default without a link model");
+    let subscreens = v["subscreen_count"].as_u64().unwrap();
+    let through_forks: u64 = nodes
+        .iter()
+        .filter(|n| n["role"] == "Fork")
+        .map(|n| n["frames_forwarded"].as_u64().unwrap())
+        .sum();
+    assert!(
+        through_forks < subscreens,
+        "{through_forks} frames through fork nodes for {subscreens} subscreens"
+    );
     assert!(t["paths_deferred"].as_u64().unwrap() > 0, "{t}");
     assert!(t["deferred_fetches"].as_u64().unwrap() > 0, "{t}");
     let fetched =
@@ -163,8 +176,17 @@ fn tiny_cluster_matches_in_every_mode() {
         vec!["--transfer", "batch", "--subscreens", "1"],
         vec!["--transfer", "batch", "--subscreens", "7"],
         vec!["--transfer", "batch", "--subscreens", "500"],
-        // The paper's way: a node asks for its next subscreen only once it has finished one.
-        vec!["--ask-ahead", "off", "--subscreens", "40", "--adaptive"],
+        // The paper's way: a node asks for its next subscreen only once it has finished one,
+        // and asks through the mesh.
+        vec![
+            "--ask-ahead",
+            "off",
+            "--ask-via",
+            "mesh",
+            "--subscreens",
+            "40",
+            "--adaptive",
+        ],
         vec![
             "--transfer",
             "demand",

@@ -51,6 +51,10 @@ pub struct ClusterRenderConfig {
     pub coherent_rays: bool,
     /// Render nodes ask for their next subscreen as they begin one ([`JobSpec::ask_ahead`]).
     pub ask_ahead: bool,
+    /// How render nodes' requests for work travel ([`JobSpec::ask_via`]); `None`: over their
+    /// own connection to the host when the links have no delay model, else through the mesh,
+    /// whose hops the model charges as the paper's.
+    pub ask_via: Option<protocol::AskVia>,
 }
 
 /// Why a cluster render stopped without an image.
@@ -140,6 +144,8 @@ pub struct ClusterStats {
     pub coherent_rays: bool,
     /// Whether render nodes asked for their next subscreen as they began one.
     pub ask_ahead: bool,
+    /// How their requests for work travelled: `mesh` or `control`.
+    pub ask_via: String,
     pub link_model: String,
     pub time_scale: f64,
     pub totals: NodeStats,
@@ -665,6 +671,13 @@ fn plan_job(
             && config.transfer == TransferMode::Demand
             && cache_bytes < data_bytes,
         ask_ahead: config.ask_ahead,
+        ask_via: config.ask_via.unwrap_or(
+            if config.cluster.topology.model.link == fabric::model::LinkModelKind::None {
+                protocol::AskVia::Control
+            } else {
+                protocol::AskVia::Mesh
+            },
+        ),
     };
     Ok(JobPlan {
         job,
@@ -705,7 +718,7 @@ struct Rendering {
     /// Whether writing the checkpoint failed already (said once, the render goes on).
     checkpoint_failed: bool,
     /// The frames of requests for work not answered yet, to answer them by.
-    requests: HashMap<Request, Frame>,
+    requests: HashMap<Request, (Frame, Via)>,
     times: SubscreenTimes,
     progress: Progress,
     /// The scene as the host sent it and where its items are: a lost fork node's share is
@@ -892,8 +905,9 @@ impl Rendering {
                     node: sender,
                     tag: frame.header.tag,
                 };
-                // A repeat of a waiting request is answered by the first one's frame.
-                self.requests.entry(request).or_insert(frame);
+                // A repeat of a waiting request is answered by the first one's frame, the way
+                // it came.
+                self.requests.entry(request).or_insert((frame, via));
                 let actions = self
                     .scheduler
                     .request(request, finished, ahead, Instant::now());
@@ -996,7 +1010,7 @@ impl Rendering {
     }
 
     fn answer(&mut self, request: Request, answer: Answer) {
-        let Some(frame) = self.requests.remove(&request) else {
+        let Some((frame, via)) = self.requests.remove(&request) else {
             return;
         };
         let message = match answer {
@@ -1009,7 +1023,7 @@ impl Rendering {
         };
         let _ = self
             .f
-            .reply(&frame, &message, Box::new([]), fabric::Route::Mesh, 0);
+            .reply(&frame, &message, Box::new([]), fabric::Route::back(via), 0);
     }
 
     /// Copies `width` pixels at (x, y) from the run that brought them into the image.
@@ -1116,13 +1130,13 @@ impl SubscreenTimes {
     }
 }
 
-/// Answers a request for work after the frame with "no more work".
-fn refuse_request(f: &fabric::Fabric, request: &Frame) {
+/// Answers a request for work that came `via` this way, after the frame, with "no more work".
+fn refuse_request(f: &fabric::Fabric, request: &Frame, via: Via) {
     let _ = f.reply(
         request,
         &Message::NoMoreWork,
         Box::new([]),
-        fabric::Route::Mesh,
+        fabric::Route::back(via),
         0,
     );
 }
@@ -1140,11 +1154,11 @@ async fn collect_node_stats(cluster: &mut Cluster) -> Vec<NodeStats> {
     let until = Instant::now() + Duration::from_secs(10);
     while nodes.len() < alive.len() && Instant::now() < until {
         match tokio::time::timeout(Duration::from_millis(200), cluster.formed.inbox.recv()).await {
-            Ok(Some(Delivery::Frame { frame, .. })) => match frame.message() {
+            Ok(Some(Delivery::Frame { frame, via })) => match frame.message() {
                 Ok(Message::NodeStats(s)) => {
                     nodes.insert(s.node, *s);
                 }
-                Ok(Message::SubscreenRequest { .. }) => refuse_request(&f, &frame),
+                Ok(Message::SubscreenRequest { .. }) => refuse_request(&f, &frame, via),
                 _ => {}
             },
             // A node lost now cannot answer; the image is already written.
@@ -1320,6 +1334,7 @@ fn cluster_stats(
         order: config.order,
         coherent_rays: done.plan.job.coherent_rays,
         ask_ahead: done.plan.job.ask_ahead,
+        ask_via: done.plan.job.ask_via.as_str().into(),
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,
@@ -1363,10 +1378,10 @@ async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric, mut owed: Has
             return;
         }
         match tokio::time::timeout(left, cluster.formed.inbox.recv()).await {
-            Ok(Some(Delivery::Frame { frame, .. })) => {
+            Ok(Some(Delivery::Frame { frame, via })) => {
                 if let Ok(Message::SubscreenRequest { .. }) = frame.message() {
                     owed.remove(&frame.header.sender);
-                    refuse_request(f, &frame);
+                    refuse_request(f, &frame, via);
                 }
             }
             Ok(Some(Delivery::Lost { peer, .. })) => {

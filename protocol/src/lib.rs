@@ -37,12 +37,13 @@ pub use codec::{FrameReader, FrameWriter, ReadError};
 pub use frame::{BROADCAST, Frame, FrameHeader, HEADER_LEN, MAX_DATA, MAX_META, Mode, NodeId};
 pub use handshake::{ConnectionKind, HandshakeError, Identity, Secret};
 pub use message::{
-    DataId, DecodeError, DmaTransport, JobSpec, Message, NodeStats, Rect, Role, SubscreenWork,
-    Transfer, TransferMode, bytes_to_words, decode_value, encode_value, words_to_bytes,
+    AskVia, DataId, DecodeError, DmaTransport, JobSpec, Message, NodeStats, Rect, Role,
+    SubscreenWork, Transfer, TransferMode, bytes_to_words, decode_value, encode_value,
+    words_to_bytes,
 };
 
 /// Bumped whenever the frame layout or the message set changes incompatibly.
-pub const PROTOCOL_VERSION: u32 = 7;
+pub const PROTOCOL_VERSION: u32 = 8;
 
 /// What this process was built from: crate version, hashes of the workspace's sources and of
 /// the lock file, target architecture and instruction-set features (the root package's

@@ -54,6 +54,26 @@ impl DmaTransport {
     }
 }
 
+/// How a render node's requests for work reach the host, and the answers come back.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AskVia {
+    /// Hop by hop through the render nodes' mesh and the fork nodes, as in the paper (the
+    /// delay model charges each hop).
+    #[default]
+    Mesh,
+    /// Over the node's own connection to the host: one hop, and no other process woken.
+    Control,
+}
+
+impl AskVia {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AskVia::Mesh => "mesh",
+            AskVia::Control => "control",
+        }
+    }
+}
+
 /// A piece of data a render node can ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum DataId {
@@ -327,6 +347,9 @@ pub struct JobSpec {
     /// there when they finish it (instead of a round trip through the mesh after each).
     #[serde(default)]
     pub ask_ahead: bool,
+    /// How requests for work travel.
+    #[serde(default)]
+    pub ask_via: AskVia,
 }
 
 /// What one node did, reported at the end of a render.

@@ -189,6 +189,7 @@ mod tests {
             render_threads: 1,
             coherent_rays: false,
             ask_ahead: false,
+            ask_via: protocol::AskVia::Mesh,
         })
     }
 

@@ -12,7 +12,7 @@ use std::{
 };
 
 use fabric::{Fabric, Route};
-use protocol::{JobSpec, Message, NodeId, Rect, SubscreenWork};
+use protocol::{AskVia, JobSpec, Message, NodeId, Rect, SubscreenWork};
 use renderer::{
     SceneHeader,
     render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
@@ -221,20 +221,25 @@ impl Worker {
         Ok(())
     }
 
-    /// Asks the host for a subscreen, on the node's runtime: the answer comes through the
-    /// mesh while this thread goes on. A subscreen given is registered as in progress as
+    /// Asks the host for a subscreen, on the node's runtime: the answer comes (through the
+    /// mesh or over the node's own connection to the host, [`JobSpec::ask_via`]) while this
+    /// thread goes on. A subscreen given is registered as in progress as
     /// soon as it arrives, so that the host can have its unbegun rows back before this
     /// thread begins it.
     fn ask(&self, finished: Option<u32>, ahead: bool) -> Asked {
         let f = self.fabric.clone();
         let active = self.active.clone();
+        let route = match self.job.ask_via {
+            AskVia::Mesh => Route::Mesh,
+            AskVia::Control => Route::Control,
+        };
         self.runtime.spawn(async move {
             let reply = f
                 .request(
                     0,
                     &Message::SubscreenRequest { finished, ahead },
                     Box::new([]),
-                    Route::Mesh,
+                    route,
                     ASK_TIMEOUT,
                 )
                 .await

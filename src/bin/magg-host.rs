@@ -461,6 +461,11 @@ struct RenderArgs {
     /// they finish (on), or only once they have finished (off, as in the paper).
     #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
     ask_ahead: bool,
+    /// How render nodes' requests for work reach the host: auto (over each node's own
+    /// connection to the host when --link-model is none, else mesh), mesh (hop by hop through
+    /// the render nodes' mesh and the fork nodes, as in the paper) or control (one hop)
+    #[arg(long, default_value = "auto", value_parser = parse_ask_via)]
+    ask_via: AskViaArg,
     #[arg(long, default_value_t = 640)]
     width: u32,
     /// Image height; by default from the camera's aspect ratio, else 480.
@@ -692,6 +697,21 @@ fn parse_dma_transport(s: &str) -> Result<protocol::DmaTransport, String> {
     }
 }
 
+/// `--ask-via`: a way, or `auto` (`None`: the host picks by the link model).
+#[derive(Clone, Copy, Debug)]
+struct AskViaArg(Option<protocol::AskVia>);
+
+fn parse_ask_via(s: &str) -> Result<AskViaArg, String> {
+    match s {
+        "auto" => Ok(AskViaArg(None)),
+        "mesh" => Ok(AskViaArg(Some(protocol::AskVia::Mesh))),
+        "control" => Ok(AskViaArg(Some(protocol::AskVia::Control))),
+        o => Err(format!(
+            "unknown way to ask for work {o:?} (auto, mesh or control)"
+        )),
+    }
+}
+
 fn parse_on_off(s: &str) -> Result<bool, String> {
     match s {
         "on" => Ok(true),
@@ -852,6 +872,7 @@ fn render(args: RenderArgs) -> Result<()> {
             render_threads: args.render_threads.max(1),
             coherent_rays: args.coherent_rays,
             ask_ahead: args.ask_ahead,
+            ask_via: args.ask_via.0,
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let rt = runtime()?;

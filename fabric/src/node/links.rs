@@ -184,7 +184,11 @@ impl Fabric {
 
     /// Sends on a control connection (a node to the host, or the host to a node).
     pub fn send_control(&self, peer: NodeId, message: &Message) -> Result<(), SendError> {
-        let frame = Frame::new(self.inner.me, peer, message, Box::new([]));
+        self.send_control_frame(peer, Frame::new(self.inner.me, peer, message, Box::new([])))
+    }
+
+    /// Sends `frame` on the control connection to `peer`.
+    pub(super) fn send_control_frame(&self, peer: NodeId, frame: Frame) -> Result<(), SendError> {
         let p = self.inner.control.lock().expect("lock").get(&peer).cloned();
         match p {
             Some(p) => {

@@ -78,6 +78,20 @@ pub enum Route {
     Mesh,
     /// Over the direct connection to the peer (DMA or G-bus).
     Direct,
+    /// Over the control connection between a node and the host (no model time: what travels
+    /// there is outside the paper's machine, or chosen to bypass it).
+    Control,
+}
+
+impl Route {
+    /// The route that answers a request that came `via` this way: a request over a control
+    /// connection is answered there, any other through the mesh.
+    pub fn back(via: Via) -> Route {
+        match via {
+            Via::Control(_) => Route::Control,
+            Via::Mesh(_) | Via::Direct(_) => Route::Mesh,
+        }
+    }
 }
 
 /// How a frame reached this process.

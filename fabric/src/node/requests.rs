@@ -57,6 +57,7 @@ impl Fabric {
         let sent = match route {
             Route::Mesh => self.send_frame(frame, 0),
             Route::Direct => self.send_direct_frame(to, frame),
+            Route::Control => self.send_control_frame(to, frame),
         };
         if let Err(e) = sent {
             self.inner.pending.lock().expect("lock").remove(&tag);
@@ -89,9 +90,13 @@ impl Fabric {
         let tag = request.header.tag;
         match route {
             Route::Mesh => self.send_at(to, message, data, tag, FLAG_REPLY, ready_ns),
-            Route::Direct => {
+            Route::Direct | Route::Control => {
                 let mut frame = Frame::new(self.inner.me, to, message, data).with_tag(tag);
                 frame.header.flags |= FLAG_REPLY;
+                if route == Route::Control {
+                    // A control connection carries no model times.
+                    return self.send_control_frame(to, frame);
+                }
                 frame.header.first_ns = ready_ns;
                 frame.header.last_ns = ready_ns;
                 self.send_direct_frame(to, frame)
