@@ -1033,19 +1033,10 @@ mod tests {
         m
     }
 
-    struct Words(Vec<u32>);
-    impl Block for Words {
-        fn words(&self) -> &[u32] {
-            &self.0
-        }
-    }
-
     /// `words` at a 64-byte aligned place of a block, as a card's segment holds them.
     fn aligned_block(words: &[u32]) -> (Arc<dyn Block>, usize, usize) {
-        let mut v = vec![0u32; words.len() + 16];
-        let start = (16 - (v.as_ptr() as usize / 4) % 16) % 16;
-        v[start..start + words.len()].copy_from_slice(words);
-        (Arc::new(Words(v)), start, start + words.len())
+        let (block, places) = crate::region::testing::aligned_block(&[words]);
+        (block, places[0].0, places[0].1)
     }
 
     #[test]

@@ -764,18 +764,19 @@ pub fn build_chunk_from(
 impl Chunk {
     /// Sets the chunk's id (done once every chunk of the scene is built, in order).
     pub fn set_chunk_id(&mut self, id: u32) {
-        let header: &mut ChunkHeader = bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(
-            &mut self.words.make_mut()[..HEADER_WORDS],
-        ));
-        header.chunk_id = id;
+        self.header_mut().chunk_id = id;
     }
 
     /// Sets the light index of the first triangle (done once the scene's light list exists).
     pub fn set_light_base(&mut self, base: u32) {
-        let header: &mut ChunkHeader = bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(
+        self.header_mut().light_base = base;
+    }
+
+    /// The header of a chunk being made here (its words are this process's own).
+    fn header_mut(&mut self) -> &mut ChunkHeader {
+        bytemuck::from_bytes_mut(bytemuck::cast_slice_mut(
             &mut self.words.make_mut()[..HEADER_WORDS],
-        ));
-        header.light_base = base;
+        ))
     }
 
     pub fn bounds(&self) -> Aabb {
@@ -938,25 +939,15 @@ mod tests {
         // coordinates (a bad sample) instead of reading out of bounds, the rest is intact.
         words[HEADER_WORDS + h.node_count as usize * NODE_WORDS + 9] = f32::NAN.to_bits();
         let walk = chunk.accel().to_words();
-        struct Words(Vec<u32>);
-        impl crate::region::Block for Words {
-            fn words(&self) -> &[u32] {
-                &self.0
-            }
-        }
-        // Both parts 64-byte aligned, as a card's segment places them.
-        let walk_at = words.len().next_multiple_of(16);
-        let mut all = vec![0u32; walk_at + walk.len() + 16];
-        let start = (16 - (all.as_ptr() as usize / 4) % 16) % 16;
-        all[start..start + words.len()].copy_from_slice(&words);
-        all[start + walk_at..start + walk_at + walk.len()].copy_from_slice(&walk);
-        let block: std::sync::Arc<dyn crate::region::Block> = std::sync::Arc::new(Words(all));
+        let (block, places) = crate::region::testing::aligned_block(&[&words, &walk]);
+        let [(start, words_end), (walk_start, walk_end)] = places[..] else {
+            unreachable!("two parts")
+        };
         let place = WalkPlace {
             block: block.clone(),
-            start: start + walk_at,
-            end: start + walk_at + walk.len(),
+            start: walk_start,
+            end: walk_end,
         };
-        let words_end = start + words.len();
         let region = Region::in_block(block, start, words_end).expect("in the block");
         let read = Chunk::from_region(region, Some(place)).expect("taken as it lies");
         let hit = TriHit {

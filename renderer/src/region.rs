@@ -147,16 +147,43 @@ impl<T: std::fmt::Debug> std::fmt::Debug for Region<T> {
     }
 }
 
+/// Blocks for tests of what is read in place.
 #[cfg(test)]
-mod tests {
-    use super::*;
+pub(crate) mod testing {
+    use std::sync::Arc;
 
-    struct Words(Vec<u32>);
+    use super::Block;
+
+    pub struct Words(pub Vec<u32>);
     impl Block for Words {
         fn words(&self) -> &[u32] {
             &self.0
         }
     }
+
+    /// `parts` one after the other in a block, each at a 64-byte aligned place as a card's
+    /// segment holds them; the block and each part's words `start..end`.
+    pub fn aligned_block(parts: &[&[u32]]) -> (Arc<dyn Block>, Vec<(usize, usize)>) {
+        let mut places = Vec::new();
+        let mut at = 0;
+        for p in parts {
+            places.push((at, at + p.len()));
+            at = (at + p.len()).next_multiple_of(16);
+        }
+        let mut v = vec![0u32; at + 16];
+        let base = (16 - (v.as_ptr() as usize / 4) % 16) % 16;
+        for (p, (s, e)) in parts.iter().zip(&mut places) {
+            v[base + *s..base + *e].copy_from_slice(p);
+            (*s, *e) = (base + *s, base + *e);
+        }
+        (Arc::new(Words(v)), places)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::Words;
+    use super::*;
 
     #[test]
     fn a_region_in_a_block_sees_its_words_and_keeps_the_block_alive() {

@@ -93,13 +93,14 @@ impl Fabric {
             Route::Direct | Route::Control => {
                 let mut frame = Frame::new(self.inner.me, to, message, data).with_tag(tag);
                 frame.header.flags |= FLAG_REPLY;
-                if route == Route::Control {
+                if route == Route::Direct {
+                    frame.header.first_ns = ready_ns;
+                    frame.header.last_ns = ready_ns;
+                    self.send_direct_frame(to, frame)
+                } else {
                     // A control connection carries no model times.
-                    return self.send_control_frame(to, frame);
+                    self.send_control_frame(to, frame)
                 }
-                frame.header.first_ns = ready_ns;
-                frame.header.last_ns = ready_ns;
-                self.send_direct_frame(to, frame)
             }
         }
     }
