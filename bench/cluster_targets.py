@@ -72,6 +72,9 @@ def main():
     configs = [
         ("spheres", "in-process", spheres + ["--in-process"]),
         ("spheres", "86 processes, cache 100%", spheres + ["--cache", "100"]),
+        # The paper's way, for comparison: every render node at work at once.
+        ("spheres", "86 processes, cache 100%, all at work",
+         spheres + ["--cache", "100", "--at-work", "all"]),
         ("spheres", "86 processes, cache 5%", spheres + ["--cache", "5"]),
         # The paper's way, for comparison: each miss fetched at once (no coherent rays).
         ("spheres", "86 processes, cache 5%, coherent rays off",

@@ -62,6 +62,10 @@ fn start_cluster_on<S: AsRef<OsStr>>(
                 "--quiet",
                 "--topology",
                 topology,
+                // Every render node at work, as in the paper, whatever the machine's CPUs:
+                // these tests kill or cut off particular nodes mid-render.
+                "--at-work",
+                "all",
             ])
             .arg("--listen")
             .arg(format!("{host_ip}:0"))

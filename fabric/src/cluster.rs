@@ -185,6 +185,23 @@ fn hostname() -> String {
         .unwrap_or_default()
 }
 
+/// CPUs online on this machine, whatever this process may use of them.
+fn machine_cpus() -> u32 {
+    std::fs::read_to_string("/sys/devices/system/cpu/online")
+        .ok()
+        .and_then(|list| count_cpu_list(&list))
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get() as u32))
+}
+
+/// The number of CPUs in a kernel CPU list ("0-3,8-11\n" is 8); `None` if it is not one.
+fn count_cpu_list(list: &str) -> Option<u32> {
+    list.trim().split(',').try_fold(0u32, |sum, range| {
+        let (first, last) = range.split_once('-').unwrap_or((range, range));
+        let (first, last): (u32, u32) = (first.parse().ok()?, last.parse().ok()?);
+        sum.checked_add(last.checked_sub(first)?.checked_add(1)?)
+    })
+}
+
 type ControlHalves = (
     FrameReader<tokio::net::tcp::OwnedReadHalf>,
     FrameWriter<tokio::net::tcp::OwnedWriteHalf>,
@@ -594,6 +611,8 @@ async fn register_with_host(
         pid: std::process::id(),
         hostname: hostname(),
         boot_id: boot_id(),
+        cpus: std::thread::available_parallelism().map_or(1, |n| n.get() as u32),
+        machine_cpus: machine_cpus(),
     };
     writer
         .write(&Frame::new(0, 0, &register, Box::new([])))
@@ -692,5 +711,21 @@ pub async fn leave(fabric: &Fabric) {
     let until = tokio::time::Instant::now() + Duration::from_secs(5);
     while fabric.has_control(0) && tokio::time::Instant::now() < until {
         tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::count_cpu_list;
+
+    #[test]
+    fn cpu_lists_are_counted_range_by_range() {
+        assert_eq!(count_cpu_list("0-1\n"), Some(2));
+        assert_eq!(count_cpu_list("0"), Some(1));
+        assert_eq!(count_cpu_list("0-3,8-11"), Some(8));
+        assert_eq!(count_cpu_list("0,2,4-5"), Some(4));
+        assert_eq!(count_cpu_list(""), None);
+        assert_eq!(count_cpu_list("3-1"), None);
+        assert_eq!(count_cpu_list("a-b"), None);
     }
 }

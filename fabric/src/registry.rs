@@ -34,6 +34,9 @@ pub struct Registration {
     pub hostname: String,
     /// Which boot of which machine it runs on (nodes with the host's share its clock).
     pub boot_id: String,
+    /// CPUs the process may run on, and CPUs online on its machine.
+    pub cpus: u32,
+    pub machine_cpus: u32,
 }
 
 impl Registration {
@@ -46,12 +49,16 @@ impl Registration {
                 pid,
                 hostname,
                 boot_id,
+                cpus,
+                machine_cpus,
             } => Some(Registration {
                 role,
                 advertise,
                 pid,
                 hostname,
                 boot_id,
+                cpus,
+                machine_cpus,
             }),
             _ => None,
         }
@@ -67,6 +74,10 @@ pub struct Member {
     pub pid: u32,
     pub hostname: String,
     pub boot_id: String,
+    /// CPUs the process may run on, and CPUs online on its machine (the host's scheduler
+    /// keeps a machine from running more render nodes at once than it has CPUs).
+    pub cpus: u32,
+    pub machine_cpus: u32,
 }
 
 /// Why the host turns a registering node away. The text is what that node prints.
@@ -198,6 +209,8 @@ impl Registry {
                 pid: registration.pid,
                 hostname: registration.hostname,
                 boot_id: registration.boot_id,
+                cpus: registration.cpus,
+                machine_cpus: registration.machine_cpus,
             },
         );
         let full = self.members.len() == self.slots();
@@ -382,6 +395,8 @@ mod tests {
                 "other"
             }
             .into(),
+            cpus: 2,
+            machine_cpus: 2,
         }
     }
 
@@ -637,6 +652,8 @@ mod tests {
             pid: 7,
             hostname: "h".into(),
             boot_id: "b".into(),
+            cpus: 2,
+            machine_cpus: 4,
         };
         assert_eq!(Registration::from_message(m).unwrap().pid, 7);
     }

@@ -55,6 +55,8 @@ pub struct ClusterRenderConfig {
     /// own connection to the host when the links have no delay model, else through the mesh,
     /// whose hops the model charges as the paper's.
     pub ask_via: Option<protocol::AskVia>,
+    /// How many render nodes of one machine may work at once.
+    pub at_work: schedule::AtWork,
 }
 
 /// Why a cluster render stopped without an image.
@@ -146,6 +148,12 @@ pub struct ClusterStats {
     pub ask_ahead: bool,
     /// How their requests for work travelled: `mesh` or `control`.
     pub ask_via: String,
+    /// How many render nodes of one machine were let work at once, as asked (`auto`,
+    /// `cpus`, `all` or a number) ...
+    pub at_work: String,
+    /// ... and as it came out: the machines whose render nodes were limited, each with its
+    /// nodes and how many of them worked at once (none: every node could work).
+    pub machine_limits: Vec<schedule::Machine>,
     pub link_model: String,
     pub time_scale: f64,
     pub totals: NodeStats,
@@ -410,7 +418,12 @@ async fn drive(
         tile_owner: placed.tile_owner,
     };
     let load_s = t0.elapsed().as_secs_f64();
-    let plan = plan_job(config, &scene, f.topology().render_nodes())?;
+    let plan = plan_job(
+        config,
+        &scene,
+        f.topology().render_nodes(),
+        &cluster.formed.members,
+    )?;
     let (width, height) = (plan.job.settings.width, plan.job.settings.height);
     let key = CheckpointKey::new(
         scene_sha256,
@@ -617,6 +630,8 @@ struct JobPlan {
     job: JobSpec,
     subscreens: Vec<Rect>,
     render_nodes: Vec<NodeId>,
+    /// Machines on which fewer render nodes work at once than run.
+    machines: Vec<schedule::Machine>,
 }
 
 /// Fixes the camera and settings exactly as a render in one process would, the cache of
@@ -625,6 +640,7 @@ fn plan_job(
     config: &ClusterRenderConfig,
     scene: &SceneHeader,
     render_nodes: Vec<NodeId>,
+    members: &[fabric::cluster::Member],
 ) -> Result<JobPlan, ClusterRenderError> {
     let rc = &config.render;
     let (settings, camera) = crate::inprocess::camera_and_settings(rc, scene)?;
@@ -658,6 +674,7 @@ fn plan_job(
         render_nodes.len(),
         config.transfer
     );
+    let no_link_model = config.cluster.topology.model.link == fabric::model::LinkModelKind::None;
     let job = JobSpec {
         settings,
         camera,
@@ -671,18 +688,40 @@ fn plan_job(
             && config.transfer == TransferMode::Demand
             && cache_bytes < data_bytes,
         ask_ahead: config.ask_ahead,
-        ask_via: config.ask_via.unwrap_or(
-            if config.cluster.topology.model.link == fabric::model::LinkModelKind::None {
-                protocol::AskVia::Control
-            } else {
-                protocol::AskVia::Mesh
-            },
-        ),
+        ask_via: config.ask_via.unwrap_or(if no_link_model {
+            protocol::AskVia::Control
+        } else {
+            protocol::AskVia::Mesh
+        }),
     };
+    let at_work = match config.at_work {
+        schedule::AtWork::Auto if no_link_model => schedule::AtWork::Cpus,
+        at_work => at_work,
+    };
+    let on_machines: Vec<schedule::NodeMachine<'_>> = members
+        .iter()
+        .filter(|m| render_nodes.contains(&m.node))
+        .map(|m| schedule::NodeMachine {
+            node: m.node,
+            machine: &m.boot_id,
+            cpus: m.cpus,
+            machine_cpus: m.machine_cpus,
+        })
+        .collect();
+    let machines = schedule::machines(&on_machines, at_work, config.render_threads);
+    for m in &machines {
+        tracing::info!(
+            "{} render nodes share a machine: {} of them work at once (--at-work {})",
+            m.nodes.len(),
+            m.at_work,
+            config.at_work
+        );
+    }
     Ok(JobPlan {
         job,
         subscreens,
         render_nodes,
+        machines,
     })
 }
 
@@ -758,6 +797,7 @@ impl Rendering {
                 render_nodes: plan.render_nodes.clone(),
                 adaptive: config.adaptive,
                 order: config.order,
+                machines: plan.machines.clone(),
             },
             &finished,
             now,
@@ -1335,6 +1375,8 @@ fn cluster_stats(
         coherent_rays: done.plan.job.coherent_rays,
         ask_ahead: done.plan.job.ask_ahead,
         ask_via: done.plan.job.ask_via.as_str().into(),
+        at_work: config.at_work.to_string(),
+        machine_limits: done.plan.machines.clone(),
         link_model: format!("{:?}", topo.model.link),
         time_scale: topo.model.time_scale,
         cluster_peak_rss_bytes: totals.peak_rss_bytes + host_rss,

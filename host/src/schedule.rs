@@ -163,6 +163,120 @@ pub struct Plan {
     /// Adaptive redivision: a node that would wait makes the busiest give back half.
     pub adaptive: bool,
     pub order: Order,
+    /// Render nodes that share a machine and how many of them may hold work at once; a node
+    /// on none of them is not limited.
+    pub machines: Vec<Machine>,
+}
+
+/// Render nodes on one machine, of which at most `at_work` hold work at once.
+///
+/// The paper's render nodes each had a processor of their own; on today's machines many may
+/// share a few cores (the paper's 80 on a laptop). Rendering on more of them at once than
+/// the machine has cores only makes them take turns: each touches the scene (faults a
+/// shared segment into its page tables, or fetches it over a socket) and the caches and
+/// scheduler of the machine are shared among more of them, for no more work done. So the
+/// host hands work to at most `at_work` of them; the others wait for work as they would at
+/// the end of a frame, and stand in for one that is lost.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Machine {
+    pub nodes: Vec<NodeId>,
+    pub at_work: usize,
+}
+
+/// How many render nodes of one machine the host lets work at once.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum AtWork {
+    /// By the CPUs the machine's render nodes report ([`machines`]) when the links have no
+    /// delay model; every node with one, since modelled links make nodes wait rather than
+    /// compute, as the paper's did.
+    #[default]
+    Auto,
+    /// By the CPUs the machine's render nodes report, whatever the link model.
+    Cpus,
+    /// Every render node, as in the paper.
+    All,
+    /// At most this many on each machine.
+    Count(u32),
+}
+
+impl std::str::FromStr for AtWork {
+    type Err = UnknownAtWork;
+    fn from_str(s: &str) -> Result<AtWork, UnknownAtWork> {
+        match s {
+            "auto" => Ok(AtWork::Auto),
+            "cpus" => Ok(AtWork::Cpus),
+            "all" => Ok(AtWork::All),
+            _ => match s.parse::<u32>() {
+                Ok(n) if n > 0 => Ok(AtWork::Count(n)),
+                _ => Err(UnknownAtWork(s.to_string())),
+            },
+        }
+    }
+}
+
+impl fmt::Display for AtWork {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            AtWork::Auto => f.write_str("auto"),
+            AtWork::Cpus => f.write_str("cpus"),
+            AtWork::All => f.write_str("all"),
+            AtWork::Count(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("unknown number of render nodes at work {0:?} (auto, cpus, all or a number above 0)")]
+pub struct UnknownAtWork(String);
+
+/// A render node as the machine limit sees it.
+#[derive(Clone, Debug)]
+pub struct NodeMachine<'a> {
+    pub node: NodeId,
+    /// Which boot of which machine it runs on; empty when unknown.
+    pub machine: &'a str,
+    /// CPUs the node's process may run on.
+    pub cpus: u32,
+    /// CPUs online on its machine.
+    pub machine_cpus: u32,
+}
+
+/// Groups render nodes by machine, each machine letting as many work at once as `at_work`
+/// says. With [`AtWork::Cpus`] that is the CPUs the machine's nodes may use between them
+/// (at most the machine's; a node limited to one CPU by its container adds one) over the
+/// rendering threads of a node. Machines with no more nodes than that, and nodes whose
+/// machine is unknown, are not limited. `Auto` and `All` take no limit: the caller decides
+/// what `Auto` is.
+pub fn machines(nodes: &[NodeMachine<'_>], at_work: AtWork, threads_per_node: u32) -> Vec<Machine> {
+    let mut by_machine: Vec<(&str, Vec<&NodeMachine<'_>>)> = Vec::new();
+    for n in nodes.iter().filter(|n| !n.machine.is_empty()) {
+        match by_machine.iter_mut().find(|(m, _)| *m == n.machine) {
+            Some((_, members)) => members.push(n),
+            None => by_machine.push((n.machine, vec![n])),
+        }
+    }
+    by_machine
+        .into_iter()
+        .filter_map(|(_, members)| {
+            let limit = match at_work {
+                AtWork::Auto | AtWork::All => return None,
+                AtWork::Count(n) => n as usize,
+                AtWork::Cpus => {
+                    let machine = members.iter().map(|n| n.machine_cpus).max().unwrap_or(1);
+                    let usable = members
+                        .iter()
+                        .map(|n| n.cpus as u64)
+                        .sum::<u64>()
+                        .min(machine as u64);
+                    (usable.div_ceil(threads_per_node.max(1) as u64) as usize).max(1)
+                }
+            };
+            (members.len() > limit).then(|| Machine {
+                nodes: members.iter().map(|n| n.node).collect(),
+                at_work: limit,
+            })
+        })
+        .collect()
 }
 
 /// Which pixels of the image have arrived. The pixels themselves stay with the caller: the
@@ -275,8 +389,9 @@ impl Subscreen {
 
 /// The host's scheduling state during one frame.
 ///
-/// Invariant kept after every event: either no subscreen is queued or no request is parked
-/// (whatever can be paired is paired at once).
+/// Invariant kept after every event: either no subscreen is queued or every parked request
+/// comes from a node whose machine already has its number of nodes at work (whatever can be
+/// paired is paired at once).
 #[derive(Debug)]
 pub struct Scheduler {
     adaptive: bool,
@@ -286,6 +401,13 @@ pub struct Scheduler {
     node_order: Vec<NodeId>,
     /// Each node's last subscreen, for `Order::Local`.
     last_rect: HashMap<NodeId, Rect>,
+    /// Per node, subscreens handed to it that it has not finished (nor lost).
+    holding: HashMap<NodeId, u32>,
+    /// Which of `machines` a node is on.
+    machine_of: HashMap<NodeId, usize>,
+    machines: Vec<Machine>,
+    /// Per machine, its live nodes holding work.
+    at_work: Vec<usize>,
     lost: HashSet<NodeId>,
     /// Whether rows may have been lost on their way (a node or a fork node was lost): the
     /// sweep for rows that never arrived runs from then on.
@@ -349,6 +471,15 @@ impl Scheduler {
             order: plan.order,
             node_order,
             last_rect: HashMap::new(),
+            holding: HashMap::new(),
+            machine_of: plan
+                .machines
+                .iter()
+                .enumerate()
+                .flat_map(|(m, machine)| machine.nodes.iter().map(move |&n| (n, m)))
+                .collect(),
+            at_work: vec![0; plan.machines.len()],
+            machines: plan.machines,
             render_nodes: plan.render_nodes.into_iter().collect(),
             lost: HashSet::new(),
             rows_may_be_lost: false,
@@ -422,12 +553,13 @@ impl Scheduler {
         }
         if let Some(s) = finished.and_then(|id| self.subscreens.get_mut(id as usize))
             && s.node == Some(request.node)
+            && s.finished_at.is_none()
         {
             s.finished_at = Some(now);
             s.giving_back = false;
+            self.let_go(request.node);
         }
-        let live = self.render_nodes.len() - self.lost.len();
-        if ahead && self.queue.len() <= live {
+        if ahead && self.queue.len() <= self.workers() {
             let answer = Answer::NothingAhead;
             self.answered.insert(request, answer);
             actions.push(Action::Answer { request, answer });
@@ -436,10 +568,70 @@ impl Scheduler {
         // A queued subscreen means no request is parked: one ahead is served at once too.
         self.parked.push_back(request);
         self.hand_out(&mut actions);
-        if self.adaptive && !self.parked.is_empty() {
+        if self.adaptive && self.idle_may_work() {
             self.ask_give_back(&mut actions);
         }
         actions
+    }
+
+    /// How many nodes may render at once: the live ones, as many of each machine's as it
+    /// lets work.
+    fn workers(&self) -> usize {
+        let live = |n: &&NodeId| !self.lost.contains(n);
+        let on_machines: usize = self
+            .machines
+            .iter()
+            .map(|m| m.nodes.iter().filter(live).count().min(m.at_work))
+            .sum();
+        let elsewhere = self
+            .render_nodes
+            .iter()
+            .filter(live)
+            .filter(|n| !self.machine_of.contains_key(n))
+            .count();
+        on_machines + elsewhere
+    }
+
+    /// Whether `node` may be handed work now: it holds some already, or its machine has
+    /// fewer nodes at work than it lets work.
+    fn may_work(&self, node: NodeId) -> bool {
+        match self.machine_of.get(&node) {
+            None => true,
+            Some(&m) => {
+                self.at_work[m] < self.machines[m].at_work
+                    || self.holding.get(&node).is_some_and(|&n| n > 0)
+            }
+        }
+    }
+
+    /// Whether a node that waits for work could take some: one the machine lets work.
+    fn idle_may_work(&self) -> bool {
+        self.parked.iter().any(|r| self.may_work(r.node))
+    }
+
+    /// `node` now holds one more subscreen.
+    fn hold(&mut self, node: NodeId) {
+        let held = self.holding.entry(node).or_default();
+        *held += 1;
+        if *held == 1
+            && let Some(&m) = self.machine_of.get(&node)
+        {
+            self.at_work[m] += 1;
+        }
+    }
+
+    /// `node` no longer holds one of its subscreens (finished, or taken back).
+    fn let_go(&mut self, node: NodeId) {
+        if let Some(held) = self.holding.get_mut(&node)
+            && *held > 0
+        {
+            *held -= 1;
+            if *held == 0
+                && let Some(&m) = self.machine_of.get(&node)
+            {
+                self.at_work[m] -= 1;
+            }
+        }
     }
 
     /// `node` gave back the rows of `subscreen` from `from_row` on (relative to its top); a
@@ -469,7 +661,7 @@ impl Scheduler {
             self.queue.push_back(self.subscreens.len() as u32 - 1);
         }
         self.hand_out(&mut actions);
-        if !self.parked.is_empty() {
+        if self.idle_may_work() {
             self.ask_give_back(&mut actions);
         }
         actions
@@ -509,7 +701,15 @@ impl Scheduler {
         }
         self.lost.insert(node);
         self.parked.retain(|r| r.node != node);
-        self.take_back(node)
+        let actions = self.take_back(node);
+        // Subscreens whose every row came in before it said it finished are not taken
+        // back, yet it works no more: its place at work goes to another.
+        while self.holding.get(&node).is_some_and(|&n| n > 0) {
+            self.let_go(node);
+        }
+        let mut actions = actions;
+        self.hand_out(&mut actions);
+        actions
     }
 
     /// Queues again, first in line, the rows still missing of every subscreen `node` was
@@ -601,12 +801,19 @@ impl Scheduler {
         }
     }
 
-    /// Pairs waiting requests with queued subscreens, first asker first.
+    /// Pairs waiting requests with queued subscreens, of the nodes that may work: nodes that
+    /// rendered before first (their caches hold the scene, and a node that finished and asks
+    /// again keeps its place at work), then first asker first.
     fn hand_out(&mut self, actions: &mut Vec<Action>) {
         while !self.queue.is_empty() {
-            let Some(request) = self.parked.pop_front() else {
+            let may_work = |r: &Request| self.may_work(r.node);
+            let Some(at) = (self.parked.iter())
+                .position(|r| self.last_rect.contains_key(&r.node) && may_work(r))
+                .or_else(|| self.parked.iter().position(may_work))
+            else {
                 break;
             };
+            let request = self.parked.remove(at).expect("a parked request");
             let at = self.choose(request.node);
             let id = self.queue.remove(at).expect("a place in the queue");
             let s = &mut self.subscreens[id as usize];
@@ -615,8 +822,10 @@ impl Scheduler {
             s.finished_at = None;
             s.giving_back = false;
             s.again = false;
-            self.last_rect.insert(request.node, s.rect);
-            let answer = Answer::Subscreen { id, rect: s.rect };
+            let rect = s.rect;
+            self.last_rect.insert(request.node, rect);
+            self.hold(request.node);
+            let answer = Answer::Subscreen { id, rect };
             self.answered.insert(request, answer);
             actions.push(Action::Answer { request, answer });
         }
@@ -669,6 +878,11 @@ impl Scheduler {
         let Some((first, rest)) = runs.split_first() else {
             return;
         };
+        if let Some(node) = self.subscreens[id].node
+            && self.subscreens[id].finished_at.is_none()
+        {
+            self.let_go(node);
+        }
         self.subscreens[id] = Subscreen {
             again: true,
             ..Subscreen::new(*first)
@@ -743,6 +957,7 @@ mod tests {
             render_nodes: vec![A, B],
             adaptive,
             order: Order::Plain,
+            machines: Vec::new(),
         }
     }
 
@@ -1344,6 +1559,7 @@ mod tests {
             render_nodes: vec![B, A],
             adaptive: false,
             order: Order::Local,
+            machines: Vec::new(),
         }
     }
 
@@ -1415,6 +1631,64 @@ mod tests {
     }
 
     #[test]
+    fn machines_let_as_many_work_as_their_nodes_have_cpus() {
+        let node = |node, machine, cpus, machine_cpus| NodeMachine {
+            node,
+            machine,
+            cpus,
+            machine_cpus,
+        };
+        // Four nodes on a 2-CPU laptop, two on a 16-CPU box, one whose machine is unknown.
+        let nodes = [
+            node(1, "laptop", 2, 2),
+            node(2, "laptop", 2, 2),
+            node(3, "laptop", 2, 2),
+            node(4, "laptop", 2, 2),
+            node(5, "box", 16, 16),
+            node(6, "box", 16, 16),
+            node(7, "", 2, 2),
+        ];
+        let laptop = |at_work| Machine {
+            nodes: vec![1, 2, 3, 4],
+            at_work,
+        };
+        assert_eq!(machines(&nodes, AtWork::Cpus, 1), vec![laptop(2)]);
+        assert_eq!(machines(&nodes, AtWork::Cpus, 2), vec![laptop(1)]);
+        assert_eq!(machines(&nodes, AtWork::Cpus, 3), vec![laptop(1)]);
+        assert_eq!(
+            machines(&nodes, AtWork::Count(1), 1),
+            vec![
+                laptop(1),
+                Machine {
+                    nodes: vec![5, 6],
+                    at_work: 1
+                }
+            ]
+        );
+        assert_eq!(machines(&nodes, AtWork::All, 1), vec![]);
+        assert_eq!(machines(&nodes, AtWork::Auto, 1), vec![]);
+        // Containers of one CPU each on an 8-CPU machine: the CPUs they may use add up.
+        let boxed: Vec<_> = (1..=12).map(|n| node(n, "host", 1, 8)).collect();
+        assert_eq!(machines(&boxed, AtWork::Cpus, 1)[0].at_work, 8);
+        assert_eq!(machines(&boxed[..4], AtWork::Cpus, 1), vec![]);
+    }
+
+    #[test]
+    fn at_work_is_auto_cpus_all_or_a_count() {
+        for text in ["auto", "cpus", "all", "3"] {
+            assert_eq!(text.parse::<AtWork>().unwrap().to_string(), text);
+        }
+        assert!("0".parse::<AtWork>().is_err());
+        assert!(
+            "many"
+                .parse::<AtWork>()
+                .unwrap_err()
+                .to_string()
+                .contains("auto, cpus, all")
+        );
+    }
+
+    #[test]
     fn orders_are_named_plain_and_local() {
         assert_eq!("local".parse::<Order>().unwrap(), Order::Local);
         assert_eq!(Order::Plain.to_string(), "plain");
@@ -1424,6 +1698,134 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("plain or local")
+        );
+    }
+
+    const C: NodeId = 7;
+
+    /// Bands of 2 rows for nodes A, B and C, all on one machine that lets `at_work` of them
+    /// work at once.
+    fn one_machine(bands: usize, at_work: usize, adaptive: bool) -> Plan {
+        Plan {
+            render_nodes: vec![A, B, C],
+            machines: vec![Machine {
+                nodes: vec![A, B, C],
+                at_work,
+            }],
+            ..plan(4, &vec![2; bands], adaptive)
+        }
+    }
+
+    #[test]
+    fn a_machine_has_no_more_nodes_at_work_than_it_lets() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(one_machine(5, 2, false), clock.at(0));
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 1), None, false, clock.at(1))),
+            1
+        );
+        // Work is queued, yet C waits: two of the machine's nodes are at work.
+        assert_eq!(s.request(ask(C, 1), None, false, clock.at(2)), vec![]);
+        assert!(s.is_waiting(ask(C, 1)));
+        // A node at work asking ahead is one already counted.
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 2), None, true, clock.at(3))),
+            2
+        );
+        // Two queued for two nodes at work: nothing ahead.
+        let nothing = s.request(ask(A, 3), Some(0), true, clock.at(4));
+        assert!(matches!(
+            nothing[..],
+            [Action::Answer {
+                answer: Answer::NothingAhead,
+                ..
+            }]
+        ));
+        // Finishing frees a place at work only for a moment: the node that asks again
+        // keeps it, and C still waits.
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 2), Some(1), false, clock.at(5))),
+            3
+        );
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 4), Some(2), false, clock.at(6))),
+            4
+        );
+        assert!(s.is_waiting(ask(C, 1)));
+        // With nothing queued, a node that finished waits like any other, and the frame's
+        // end tells every waiting node there is no more.
+        assert_eq!(s.request(ask(A, 5), Some(4), false, clock.at(7)), vec![]);
+        let ends = s.finish();
+        assert_eq!(ends.len(), 2, "{ends:?}");
+        assert!(ends.iter().all(|a| matches!(
+            a,
+            Action::Answer {
+                answer: Answer::NoMoreWork,
+                ..
+            }
+        )));
+    }
+
+    #[test]
+    fn a_node_that_stops_holding_work_makes_room_for_one_that_waits() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(one_machine(4, 1, false), clock.at(0));
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        assert_eq!(s.request(ask(B, 1), None, false, clock.at(1)), vec![]);
+        assert_eq!(s.request(ask(C, 1), None, false, clock.at(1)), vec![]);
+        // A is lost at work: its subscreen goes to the first that waited, and only to it.
+        let actions = s.node_lost(A);
+        assert!(
+            actions.contains(&given(ask(B, 1), 0, rect(0, 0, 4, 2))),
+            "{actions:?}"
+        );
+        assert!(s.is_waiting(ask(C, 1)));
+        // B finishes and asks again: it is the one at work now, so it goes on.
+        assert_eq!(
+            subscreen_of(&s.request(ask(B, 2), Some(0), false, clock.at(2))),
+            1
+        );
+        assert!(s.is_waiting(ask(C, 1)));
+    }
+
+    #[test]
+    fn a_node_kept_from_work_by_its_machine_is_not_idle_for_adaptive_redivision() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(one_machine(1, 1, true), clock.at(0));
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        // B could not take half of A's work: asking A to give it back would only split it.
+        assert_eq!(s.request(ask(B, 1), None, false, clock.at(2)), vec![]);
+    }
+
+    #[test]
+    fn requests_ahead_count_only_nodes_that_may_work() {
+        let clock = Clock(Instant::now());
+        let mut s = Scheduler::new(one_machine(3, 1, false), clock.at(0));
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 1), None, false, clock.at(1))),
+            0
+        );
+        // Two queued, one node at work on the machine: more queued than can work at once.
+        assert_eq!(
+            subscreen_of(&s.request(ask(A, 2), Some(0), true, clock.at(2))),
+            1
+        );
+        assert_eq!(
+            s.request(ask(A, 3), Some(1), true, clock.at(3)),
+            vec![Action::Answer {
+                request: ask(A, 3),
+                answer: Answer::NothingAhead
+            }]
         );
     }
 }

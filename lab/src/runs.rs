@@ -30,15 +30,22 @@ pub enum RunError {
 
 /// Runs `PROGRAM render ARGS --stats FILE -o OUT` (PROGRAM is `magg-host`; the caller names
 /// it, usually its own executable) and returns the parsed stats.
+///
+/// A cluster render puts every render node to work (`--at-work all`) unless ARGS say
+/// otherwise: the experiments study the paper's machine, whose nodes each had a processor,
+/// and the simulator they are compared with models it so, however few CPUs this machine has.
 pub fn render_run(
     program: &std::path::Path,
     args: &[String],
     out: &std::path::Path,
     stats: &std::path::Path,
 ) -> Result<serde_json::Value, RunError> {
+    let has = |flag: &str| args.iter().any(|a| a == flag);
+    let every_node = (!has("--in-process") && !has("--at-work")).then_some(["--at-work", "all"]);
     let o = Command::new(program)
         .arg("render")
         .args(args)
+        .args(every_node.iter().flatten())
         .arg("--quiet")
         .arg("-o")
         .arg(out)

@@ -119,6 +119,10 @@ pub enum Message {
         pid: u32,
         hostname: String,
         boot_id: String,
+        /// CPUs this process may run on (its affinity and CPU quota counted).
+        cpus: u32,
+        /// CPUs online on its machine.
+        machine_cpus: u32,
     },
     /// The node's slot: its id, the topology (TOML), and the peers' addresses come later.
     Assigned {

@@ -466,6 +466,12 @@ struct RenderArgs {
     /// the render nodes' mesh and the fork nodes, as in the paper) or control (one hop)
     #[arg(long, default_value = "auto", value_parser = parse_ask_via)]
     ask_via: AskViaArg,
+    /// How many render nodes of one machine work at once: cpus (as many as the CPUs they
+    /// report between them, over --render-threads; the others wait and stand in for a lost
+    /// one), all (every node, as in the paper), a number, or auto (cpus when --link-model is
+    /// none, else all).
+    #[arg(long, default_value = "auto")]
+    at_work: host::schedule::AtWork,
     #[arg(long, default_value_t = 640)]
     width: u32,
     /// Image height; by default from the camera's aspect ratio, else 480.
@@ -873,6 +879,7 @@ fn render(args: RenderArgs) -> Result<()> {
             coherent_rays: args.coherent_rays,
             ask_ahead: args.ask_ahead,
             ask_via: args.ask_via.0,
+            at_work: args.at_work,
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let rt = runtime()?;
