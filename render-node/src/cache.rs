@@ -138,7 +138,13 @@ struct State {
     /// Evicted items, the epoch at which each was unlinked, and their bytes.
     retired: Vec<(Retired, u64, u64)>,
     retired_bytes: u64,
+    /// The least recently used items as one scan of the slots found them, oldest first:
+    /// (recency stamp then, tile or chunk, slot). See [`DemandCache::evict_oldest`].
+    oldest: std::collections::VecDeque<(u64, bool, usize)>,
 }
+
+/// How many of the oldest items one scan of the slots keeps for the evictions that follow.
+const OLDEST_PER_SCAN: usize = 64;
 
 /// Counters of the cache's work.
 #[derive(Default)]
@@ -323,37 +329,35 @@ impl DemandCache {
     }
 
     /// Unlinks the least recently used item and retires it; false if nothing is resident.
+    ///
+    /// A small cache evicts at nearly every fetch, and finding the oldest item is a scan of
+    /// every slot, so one scan keeps the [`OLDEST_PER_SCAN`] oldest for the evictions after
+    /// it. Stamps only grow (a use sets the current clock; an insertion, the clock then), so
+    /// a kept item whose stamp is unchanged is still older than, or as old as, every item
+    /// not kept; one used since is dropped from the list. Items last used in the same pixel
+    /// are equally old and go in any order.
     fn evict_oldest(&self, state: &mut State) -> bool {
-        let oldest = |slots: &[(usize, u64)]| slots.iter().min_by_key(|s| s.1).copied();
-        let stamp =
-            |last: &AtomicU64, item_null: bool| (!item_null).then(|| last.load(Ordering::Relaxed));
-        let chunk = oldest(
-            &self
-                .chunks
-                .iter()
-                .enumerate()
-                .filter_map(|(i, s)| {
-                    stamp(&s.last_use, s.item.load(Ordering::Relaxed).is_null()).map(|t| (i, t))
-                })
-                .collect::<Vec<_>>(),
-        );
-        let tile = oldest(
-            &self
-                .tiles
-                .iter()
-                .enumerate()
-                .filter_map(|(i, s)| {
-                    stamp(&s.last_use, s.item.load(Ordering::Relaxed).is_null()).map(|t| (i, t))
-                })
-                .collect::<Vec<_>>(),
-        );
-        let retired = match (chunk, tile) {
-            (Some(c), Some(t)) if t.1 < c.1 => {
-                unlink(&self.tiles[t.0]).map(|(p, b)| (Retired::Tile(p), b))
+        let retired = loop {
+            let Some((stamp, is_tile, slot)) = state.oldest.pop_front().or_else(|| {
+                self.scan_oldest(state);
+                state.oldest.pop_front()
+            }) else {
+                break None;
+            };
+            let unchanged = |last: &AtomicU64, item_null: bool| {
+                !item_null && last.load(Ordering::Relaxed) == stamp
+            };
+            if is_tile {
+                let s = &self.tiles[slot];
+                if unchanged(&s.last_use, s.item.load(Ordering::Relaxed).is_null()) {
+                    break unlink(s).map(|(p, b)| (Retired::Tile(p), b));
+                }
+            } else {
+                let s = &self.chunks[slot];
+                if unchanged(&s.last_use, s.item.load(Ordering::Relaxed).is_null()) {
+                    break unlink(s).map(|(p, b)| (Retired::Chunk(p), b));
+                }
             }
-            (Some(c), _) => unlink(&self.chunks[c.0]).map(|(p, b)| (Retired::Chunk(p), b)),
-            (None, Some(t)) => unlink(&self.tiles[t.0]).map(|(p, b)| (Retired::Tile(p), b)),
-            (None, None) => None,
         };
         let Some((retired, bytes)) = retired else {
             return false;
@@ -365,6 +369,30 @@ impl DemandCache {
         state.retired.push((retired, unlinked_at, bytes));
         self.stats.evictions.fetch_add(1, Ordering::Relaxed);
         true
+    }
+
+    /// Fills `state.oldest` with the resident items of the smallest stamps, oldest first.
+    fn scan_oldest(&self, state: &mut State) {
+        fn resident<T>(
+            slots: &[Slot<T>],
+            is_tile: bool,
+        ) -> impl Iterator<Item = (u64, bool, usize)> + '_ {
+            slots
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| !s.item.load(Ordering::Relaxed).is_null())
+                .map(move |(i, s)| (s.last_use.load(Ordering::Relaxed), is_tile, i))
+        }
+        let mut all: Vec<(u64, bool, usize)> = resident(&self.chunks, false)
+            .chain(resident(&self.tiles, true))
+            .collect();
+        if all.len() > OLDEST_PER_SCAN {
+            all.select_nth_unstable(OLDEST_PER_SCAN);
+            all.truncate(OLDEST_PER_SCAN);
+        }
+        all.sort_unstable();
+        state.oldest.clear();
+        state.oldest.extend(all);
     }
 
     /// Frees retired items that no reader can hold any more.
@@ -877,6 +905,42 @@ mod tests {
         assert!(reader.chunk(0).is_ok());
         assert!(reader.chunk(1).is_err(), "chunk 1 should have been evicted");
         assert_eq!(cache.stats.evictions.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn evictions_follow_use_across_the_oldest_kept_by_one_scan() {
+        // More chunks than one scan keeps, so later evictions come from the kept list, and
+        // a kept chunk used after the scan must not be the one to go.
+        let n = OLDEST_PER_SCAN as u32 + 40;
+        let size = memory_size();
+        let cache = DemandCache::new(rules(n as usize + 20), 0, size * n as u64, None);
+        let mut reader = cache.reader();
+        let insert = |reader: &mut Reader, id: u32| {
+            let c = validate_chunk(&rules(n as usize + 20), id, Fetched::Words(chunk(id, 4))).unwrap();
+            reader.refresh();
+            cache.insert(&cache.chunks, id, c, size, true).unwrap();
+        };
+        for id in 0..n {
+            reader.tick();
+            insert(&mut reader, id);
+        }
+        // A scan keeps chunks 0.. as the oldest; then chunk 1 is used again.
+        reader.tick();
+        insert(&mut reader, n);
+        assert!(reader.chunk(0).is_err());
+        reader.tick();
+        assert!(reader.chunk(1).is_ok());
+        for id in n + 1..n + 20 {
+            reader.tick();
+            insert(&mut reader, id);
+        }
+        // Twenty evictions in all: chunk 0, then 2..=20, never 1.
+        assert!(reader.chunk(1).is_ok(), "chunk 1 was used after the scan");
+        for id in 2..=20 {
+            assert!(reader.chunk(id).is_err(), "chunk {id} should have gone");
+        }
+        assert!(reader.chunk(21).is_ok());
+        assert_eq!(cache.stats.evictions.load(Ordering::Relaxed), 20);
     }
 
     #[test]
