@@ -115,8 +115,12 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
         t["cache_evictions"].as_u64().unwrap() > 0,
         "a 5% cache must evict"
     );
-    // Coherent rays (the default): paths waited for chunks and tiles the full cache lacked.
-    assert_eq!(v["coherent_rays"], true);
+    // Coherent rays are `auto` by default: every render node read its cards' memory in
+    // place, where a miss copies nothing, so no path was put aside (tested over TCP in
+    // `coherent_rays_wait_only_where_a_miss_crosses_a_socket`).
+    assert_eq!(v["coherent_rays"], "auto");
+    assert_eq!(v["shared_memory_nodes"], 80);
+    assert_eq!(t["paths_deferred"].as_u64().unwrap(), 0, "{t}");
     assert_eq!(v["ask_ahead"], true, "the default");
     // With links of no delay model, requests for work go straight to the host: they do not
     // cross the fork nodes, which through the mesh each of 4 cards' requests and answers do.
@@ -131,8 +135,6 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
         through_forks < subscreens,
         "{through_forks} frames through fork nodes for {subscreens} subscreens"
     );
-    assert!(t["paths_deferred"].as_u64().unwrap() > 0, "{t}");
-    assert!(t["deferred_fetches"].as_u64().unwrap() > 0, "{t}");
     let fetched =
         t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap();
     // What batch transfer would move: every chunk's and tile's words to each render node.
@@ -224,6 +226,8 @@ fn tiny_cluster_matches_in_every_mode() {
         // miss is fetched at once.
         small_cache.to_vec(),
         [&small_cache[..], &["--coherent-rays", "off"]].concat(),
+        // Paths wait for data even where it is read in place.
+        [&small_cache[..], &["--coherent-rays", "on"]].concat(),
         // One node of the four at work, or every one.
         [&small_cache[..], &["--at-work", "1"]].concat(),
         [&small_cache[..], &["--at-work", "all"]].concat(),
@@ -249,6 +253,55 @@ fn tiny_cluster_matches_in_every_mode() {
         );
         assert!(o.status.success(), "{mode:?}: {}", stderr(&o));
         same_bytes(&out, &reference);
+    }
+}
+
+/// With `--coherent-rays auto` (the default), paths wait for data where a miss crosses a
+/// socket, and not where it is read in place in shared memory; the image is the same bytes
+/// either way.
+#[test]
+fn coherent_rays_wait_only_where_a_miss_crosses_a_socket() {
+    let dir = scratch("coherent-auto");
+    let size = [
+        "--width", "64", "--height", "48", "--spp", "2", "--seed", "3",
+    ];
+    let reference = dir.join("ref.pfm");
+    let o = render(&[&["--in-process"][..], &size].concat(), &reference, None);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let small_cache = [
+        "--spawn",
+        "tiny",
+        "--cache",
+        "8",
+        "--chunk-triangles",
+        "128",
+    ];
+    for (transport, deferring) in [("tcp", true), ("auto", false)] {
+        let out = dir.join(format!("{transport}.pfm"));
+        let stats = dir.join(format!("{transport}.json"));
+        let o = render(
+            &[&small_cache[..], &["--dma-transport", transport], &size].concat(),
+            &out,
+            Some(&stats),
+        );
+        assert!(o.status.success(), "{transport}: {}", stderr(&o));
+        same_bytes(&out, &reference);
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+        assert_eq!(v["coherent_rays"], "auto");
+        // Nodes waiting on sockets fill each other's waits: every one of them works. Reading
+        // in place, no more than the machine's CPUs.
+        let limited = !v["machine_limits"].as_array().unwrap().is_empty();
+        let cpus = std::thread::available_parallelism().unwrap().get();
+        assert_eq!(limited, !deferring && cpus < 4, "{transport}: {v}");
+        let t = &v["totals"];
+        assert!(t["cache_evictions"].as_u64().unwrap() > 0, "{t}");
+        let deferred = t["paths_deferred"].as_u64().unwrap();
+        assert_eq!(deferred > 0, deferring, "{transport}: {t}");
+        assert_eq!(
+            t["deferred_fetches"].as_u64().unwrap() > 0,
+            deferring,
+            "{transport}: {t}"
+        );
     }
 }
 
@@ -282,7 +335,7 @@ fn adaptive_redivision_splits_subscreens() {
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
     // A cache that holds the whole scene (the default) makes no path wait: rows are taken
     // one at a time, and so can be given back.
-    assert_eq!(v["coherent_rays"], false);
+    assert_eq!(v["coherent_rays"], "off");
     assert!(
         v["subscreens_split"].as_u64().unwrap() >= 2,
         "{}",

@@ -74,6 +74,31 @@ impl AskVia {
     }
 }
 
+/// Whether render nodes trace memory-coherent rays: a path whose data the cache lacks is put
+/// aside while the thread goes on with others (`renderer::render::render_rect_coherent`),
+/// instead of the thread waiting for each miss.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CoherentRays {
+    /// Each miss is fetched at once while the thread waits, as in the paper.
+    #[default]
+    Off,
+    On,
+    /// On, except while a node reads every card's memory in place (shared memory, links
+    /// with no delay model): a miss there copies nothing and waits for no one, so putting
+    /// paths aside would cost more than it saves.
+    Auto,
+}
+
+impl CoherentRays {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CoherentRays::Off => "off",
+            CoherentRays::On => "on",
+            CoherentRays::Auto => "auto",
+        }
+    }
+}
+
 /// A piece of data a render node can ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum DataId {
@@ -342,11 +367,10 @@ pub struct JobSpec {
     pub cache_bytes: u64,
     /// Rendering threads per render node.
     pub render_threads: u32,
-    /// Render nodes put a path that needs data they lack aside and go on with others
-    /// (memory-coherent rays, `renderer::render::render_rect_coherent`), instead of waiting
-    /// for each miss.
+    /// Whether render nodes put a path that needs data they lack aside and go on with
+    /// others; never with a cache that holds the whole scene.
     #[serde(default)]
-    pub coherent_rays: bool,
+    pub coherent_rays: CoherentRays,
     /// Render nodes ask for their next subscreen as they begin one, so that the answer is
     /// there when they finish it (instead of a round trip through the mesh after each).
     #[serde(default)]

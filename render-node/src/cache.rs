@@ -916,7 +916,8 @@ mod tests {
         let cache = DemandCache::new(rules(n as usize + 20), 0, size * n as u64, None);
         let mut reader = cache.reader();
         let insert = |reader: &mut Reader, id: u32| {
-            let c = validate_chunk(&rules(n as usize + 20), id, Fetched::Words(chunk(id, 4))).unwrap();
+            let c =
+                validate_chunk(&rules(n as usize + 20), id, Fetched::Words(chunk(id, 4))).unwrap();
             reader.refresh();
             cache.insert(&cache.chunks, id, c, size, true).unwrap();
         };

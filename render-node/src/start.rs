@@ -187,7 +187,7 @@ mod tests {
             dma_transport: DmaTransport::Auto,
             cache_bytes,
             render_threads: 1,
-            coherent_rays: false,
+            coherent_rays: protocol::CoherentRays::Off,
             ask_ahead: false,
             ask_via: protocol::AskVia::Mesh,
         })

@@ -12,7 +12,7 @@ use std::{
 };
 
 use fabric::{Fabric, Route};
-use protocol::{AskVia, JobSpec, Message, NodeId, Rect, SubscreenWork};
+use protocol::{AskVia, CoherentRays, JobSpec, Message, NodeId, Rect, SubscreenWork, Transfer};
 use renderer::{
     SceneHeader,
     render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
@@ -294,7 +294,7 @@ impl Worker {
             // Coherent rays (the host asks for them only with a cache smaller than the scene)
             // want many paths in flight: as many rows are taken at once as fill a batch. One
             // at a time otherwise: rows not begun can be given back to idle nodes.
-            let coherent = self.job.coherent_rays;
+            let coherent = self.coherent();
             let rows_at_once = if coherent {
                 coherent_rows(rect.width, settings.spp)
             } else {
@@ -354,6 +354,28 @@ impl Worker {
             }
         }
         self.send_rows(id, rect, &mut unsent)
+    }
+
+    /// Whether the paths of this node's next rows may wait for data ([`CoherentRays`]). Asked
+    /// again for each batch: segments announced late may be mapped by then.
+    fn coherent(&self) -> bool {
+        match self.job.coherent_rays {
+            CoherentRays::Off => false,
+            CoherentRays::On => true,
+            CoherentRays::Auto => !self.reads_in_place(),
+        }
+    }
+
+    /// Whether every demand fetch of this node is a read in place: DMA, through a mapped
+    /// segment of every live card, with no delay model to charge it.
+    fn reads_in_place(&self) -> bool {
+        let topology = self.fabric.topology();
+        let live_cards = (topology.fork_nodes().into_iter())
+            .filter(|&n| self.fabric.is_alive(n))
+            .count();
+        self.job.demand_via == Transfer::Dma
+            && topology.model.link == fabric::model::LinkModelKind::None
+            && self.cache.shared_segments() as usize >= live_cards
     }
 
     /// Sends the rows rendered and not yet sent, in one frame, to the fork node.

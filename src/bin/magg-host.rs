@@ -453,10 +453,12 @@ struct RenderArgs {
     #[arg(long, default_value_t = 1)]
     render_threads: u32,
     /// Memory-coherent rays on render nodes: on (a path whose data the cache lacks waits
-    /// while others go on; each fetch then serves every path waiting for that item) or off
-    /// (each miss is fetched at once while the thread waits, as in the paper).
-    #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
-    coherent_rays: bool,
+    /// while others go on; each fetch then serves every path waiting for that item), off
+    /// (each miss is fetched at once while the thread waits, as in the paper), or auto (on,
+    /// except on a node that reads every card's memory in place through shared memory with
+    /// links of no delay model: a miss there copies nothing).
+    #[arg(long, default_value = "auto", value_parser = parse_coherent_rays)]
+    coherent_rays: protocol::CoherentRays,
     /// Render nodes ask for their next subscreen as they begin one, so that it is there when
     /// they finish (on), or only once they have finished (off, as in the paper).
     #[arg(long, default_value = "on", value_parser = parse_on_off, action = clap::ArgAction::Set)]
@@ -715,6 +717,15 @@ fn parse_ask_via(s: &str) -> Result<AskViaArg, String> {
         o => Err(format!(
             "unknown way to ask for work {o:?} (auto, mesh or control)"
         )),
+    }
+}
+
+fn parse_coherent_rays(s: &str) -> Result<protocol::CoherentRays, String> {
+    match s {
+        "auto" => Ok(protocol::CoherentRays::Auto),
+        "on" => Ok(protocol::CoherentRays::On),
+        "off" => Ok(protocol::CoherentRays::Off),
+        o => Err(format!("expected auto, on or off, not {o:?}")),
     }
 }
 
