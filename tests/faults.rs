@@ -53,6 +53,10 @@ fn start_cluster_on<S: AsRef<OsStr>>(
 ) -> Cluster {
     let out = dir.join("cluster.png");
     let stats = dir.join("stats.json");
+    // Every render node at work, as in the paper, whatever the machine's CPUs (these tests
+    // kill or cut off particular nodes mid-render), unless the test says otherwise.
+    let every_node =
+        (!args.iter().any(|a| a.as_ref() == "--at-work")).then_some(["--at-work", "all"]);
     let host = Logged::start(
         host()
             .args([
@@ -62,11 +66,8 @@ fn start_cluster_on<S: AsRef<OsStr>>(
                 "--quiet",
                 "--topology",
                 topology,
-                // Every render node at work, as in the paper, whatever the machine's CPUs:
-                // these tests kill or cut off particular nodes mid-render.
-                "--at-work",
-                "all",
             ])
+            .args(every_node.iter().flatten())
             .arg("--listen")
             .arg(format!("{host_ip}:0"))
             .args(args)
@@ -210,6 +211,58 @@ fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
         lost[0]["subscreens_reassigned"].as_u64().unwrap() >= 1,
         "a node killed mid-render had work to hand on: {stats}"
     );
+    same_bytes(&c.out, &in_process(&dir, &args));
+}
+
+/// With two of nine render nodes at work (the others waiting, as on a machine of two CPUs),
+/// killing one at work hands its unfinished subscreens to another and its place at work to
+/// a node that waited; the image is unchanged.
+#[test]
+fn a_killed_render_node_at_work_gives_its_place_to_one_that_waited() {
+    let _serial = serial();
+    let dir = scratch("fault-at-work");
+    let mut args = long_render();
+    args.extend(["--at-work", "2"].map(String::from));
+    let mut c = start_cluster(&dir, "grid:1x3x3", &args);
+    let line = c
+        .host
+        .wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
+        .unwrap_or_else(|| panic!("no pixels: {}", c.host.log()));
+    let victim: u32 = line
+        .split("MAGG_EVENT pixels node=")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no node in {line:?}"));
+    c.node(victim).kill9();
+    c.host
+        .wait_for(
+            &format!("lost render node {victim}"),
+            Duration::from_secs(10),
+        )
+        .unwrap_or_else(|| panic!("the host did not report the loss: {}", c.host.log()));
+    let code = c.host.wait_exit(Duration::from_secs(180));
+    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
+    c.nodes_exit(Duration::from_secs(10));
+    let stats = c.stats();
+    assert_eq!(stats["at_work"], "2", "{stats}");
+    let lost = stats["lost_nodes"].as_array().unwrap();
+    assert_eq!(lost.len(), 1, "{stats}");
+    assert_eq!(lost[0]["node"], victim, "{stats}");
+    assert!(
+        lost[0]["subscreens_reassigned"].as_u64().unwrap() >= 1,
+        "{stats}"
+    );
+    // The survivors that rendered: the other one at work and the one that took the lost
+    // node's place, no more (the lost node reports nothing).
+    let rendered: Vec<u64> = stats["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|n| n["role"] == "Render" && n["subscreens"].as_u64().unwrap() > 0)
+        .map(|n| n["node"].as_u64().unwrap())
+        .collect();
+    assert_eq!(rendered.len(), 2, "{rendered:?}: {stats}");
     same_bytes(&c.out, &in_process(&dir, &args));
 }
 
