@@ -186,9 +186,9 @@ pub struct Machine {
 /// How many render nodes of one machine the host lets work at once.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum AtWork {
-    /// By the CPUs the machine's render nodes report ([`machines`]) when the links have no
-    /// delay model; every node with one, since modelled links make nodes wait rather than
-    /// compute, as the paper's did.
+    /// By the CPUs the machine's render nodes report ([`machines`]), unless nodes wait
+    /// rather than compute: every node with a link model (as the paper's did), or with a
+    /// cache smaller than the scene fetched over sockets. The host decides which.
     #[default]
     Auto,
     /// By the CPUs the machine's render nodes report, whatever the link model.
@@ -701,13 +701,12 @@ impl Scheduler {
         }
         self.lost.insert(node);
         self.parked.retain(|r| r.node != node);
-        let actions = self.take_back(node);
+        let mut actions = self.take_back(node);
         // Subscreens whose every row came in before it said it finished are not taken
         // back, yet it works no more: its place at work goes to another.
         while self.holding.get(&node).is_some_and(|&n| n > 0) {
             self.let_go(node);
         }
-        let mut actions = actions;
         self.hand_out(&mut actions);
         actions
     }
