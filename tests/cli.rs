@@ -171,6 +171,12 @@ fn mistakes_are_one_clear_line() {
         "no-such-topology",
     );
     expect_error(&["render", "--environment", "red"], &png, "red");
+    expect_error(&["render", "--at-work", "0"], &png, "a number above 0");
+    expect_error(
+        &["render", "--coherent-rays", "maybe"],
+        &png,
+        "auto, on or off",
+    );
     // A file that is not glTF at all.
     let junk = dir.join("junk.gltf");
     std::fs::write(&junk, b"this is not json").unwrap();
