@@ -676,6 +676,8 @@ fn plan_job(
         config.transfer
     );
     let no_link_model = config.cluster.topology.model.link == fabric::model::LinkModelKind::None;
+    // Only a cache smaller than the scene misses while rendering (and can make a path wait).
+    let misses = config.transfer == TransferMode::Demand && cache_bytes < data_bytes;
     let job = JobSpec {
         settings,
         camera,
@@ -684,8 +686,7 @@ fn plan_job(
         dma_transport: config.dma_transport,
         cache_bytes,
         render_threads: config.render_threads,
-        // Only a cache smaller than the scene can make a path wait.
-        coherent_rays: if config.transfer == TransferMode::Demand && cache_bytes < data_bytes {
+        coherent_rays: if misses {
             config.coherent_rays
         } else {
             protocol::CoherentRays::Off
@@ -701,8 +702,7 @@ fn plan_job(
     // of them at work fill those waits (the spheres at cache 5% over TCP, 320x240 at 16 spp:
     // 29 to 64 s with two at work, 25 s with 16 or all). Where every miss is a read in place,
     // or the cache holds the whole scene, nothing waits long.
-    let fetches_wait = job.transfer == TransferMode::Demand
-        && cache_bytes < data_bytes
+    let fetches_wait = misses
         && (config.dma_transport == protocol::DmaTransport::Tcp
             || config.demand_via == Transfer::Serial);
     let at_work = match config.at_work {

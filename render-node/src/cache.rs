@@ -344,19 +344,13 @@ impl DemandCache {
             }) else {
                 break None;
             };
-            let unchanged = |last: &AtomicU64, item_null: bool| {
-                !item_null && last.load(Ordering::Relaxed) == stamp
-            };
-            if is_tile {
-                let s = &self.tiles[slot];
-                if unchanged(&s.last_use, s.item.load(Ordering::Relaxed).is_null()) {
-                    break unlink(s).map(|(p, b)| (Retired::Tile(p), b));
-                }
+            let unlinked = if is_tile {
+                unlink_if_unchanged(&self.tiles[slot], stamp).map(|(p, b)| (Retired::Tile(p), b))
             } else {
-                let s = &self.chunks[slot];
-                if unchanged(&s.last_use, s.item.load(Ordering::Relaxed).is_null()) {
-                    break unlink(s).map(|(p, b)| (Retired::Chunk(p), b));
-                }
+                unlink_if_unchanged(&self.chunks[slot], stamp).map(|(p, b)| (Retired::Chunk(p), b))
+            };
+            if unlinked.is_some() {
+                break unlinked;
             }
         };
         let Some((retired, bytes)) = retired else {
@@ -596,6 +590,17 @@ impl DemandCache {
 fn unlink<T>(slot: &Slot<T>) -> Option<(*mut T, u64)> {
     let p = slot.item.swap(std::ptr::null_mut(), Ordering::AcqRel);
     (!p.is_null()).then(|| (p, slot.bytes.swap(0, Ordering::Relaxed)))
+}
+
+/// Takes an item out of its slot if it is still there and unused since its recency stamp
+/// read `stamp`.
+fn unlink_if_unchanged<T>(slot: &Slot<T>, stamp: u64) -> Option<(*mut T, u64)> {
+    let resident = !slot.item.load(Ordering::Relaxed).is_null();
+    if resident && slot.last_use.load(Ordering::Relaxed) == stamp {
+        unlink(slot)
+    } else {
+        None
+    }
 }
 
 /// What differs between chunk and tile slots.
