@@ -153,17 +153,26 @@ mod tests {
     #[tokio::test(flavor = "current_thread")]
     async fn waits_end_close_to_the_deadline() {
         let t = PreciseTimer::new();
-        let mut late = Vec::new();
-        for i in 0..20u64 {
-            let deadline = now_ns() + 300_000 + i * 10_000;
-            t.sleep_until(deadline).await;
-            let now = now_ns();
-            assert!(now >= deadline);
-            late.push(now - deadline);
+        // The runtime's millisecond timer alone would end a median wait about half a
+        // millisecond late. Other tests share the cores, so a round may be descheduled as a
+        // whole: the best of several rounds is what tells the precise timer from the coarse.
+        let mut best_median = u64::MAX;
+        for _round in 0..5 {
+            let mut late = Vec::new();
+            for i in 0..20u64 {
+                let deadline = now_ns() + 300_000 + i * 10_000;
+                t.sleep_until(deadline).await;
+                let now = now_ns();
+                assert!(now >= deadline, "woke before the deadline");
+                late.push(now - deadline);
+            }
+            late.sort_unstable();
+            best_median = best_median.min(late[10]);
+            if best_median < 250_000 {
+                break;
+            }
         }
-        late.sort_unstable();
-        // Median lateness well under the runtime timer's millisecond (generous for a busy CI).
-        assert!(late[10] < 500_000, "median lateness {} ns", late[10]);
+        assert!(best_median < 250_000, "median lateness {best_median} ns");
         t.stop();
     }
 }
