@@ -188,7 +188,8 @@ pub struct Machine {
 pub enum AtWork {
     /// By the CPUs the machine's render nodes report ([`machines`]), unless nodes wait
     /// rather than compute: every node with a link model (as the paper's did), or with a
-    /// cache smaller than the scene fetched over sockets. The host decides which.
+    /// cache smaller than the scene fetched over sockets (forced TCP, fetches through the
+    /// mesh, or nodes on more than one machine). See [`resolve_at_work`].
     #[default]
     Auto,
     /// By the CPUs the machine's render nodes report, whatever the link model.
@@ -277,6 +278,31 @@ pub fn machines(nodes: &[NodeMachine<'_>], at_work: AtWork, threads_per_node: u3
             })
         })
         .collect()
+}
+
+/// Whether render and fork nodes run on more than one machine (or on one that gave no boot
+/// id), so that some render node's demand fetches must cross a socket: a card's shared
+/// memory is mapped only on its own machine.
+pub fn spans_machines<'a>(boot_ids: impl IntoIterator<Item = &'a str>) -> bool {
+    let mut first = None;
+    for id in boot_ids {
+        if id.is_empty() || *first.get_or_insert(id) != id {
+            return true;
+        }
+    }
+    false
+}
+
+/// What [`AtWork::Auto`] comes to for one render: every node at work where nodes wait
+/// rather than compute (a link model, as the paper's nodes did, or a cache smaller than the
+/// scene whose misses cross sockets: more nodes at work fill each other's waits), else as
+/// many as the CPUs. Any other choice stands as given.
+pub fn resolve_at_work(at_work: AtWork, link_model: bool, misses_cross_sockets: bool) -> AtWork {
+    match at_work {
+        AtWork::Auto if link_model || misses_cross_sockets => AtWork::All,
+        AtWork::Auto => AtWork::Cpus,
+        at_work => at_work,
+    }
 }
 
 /// Which pixels of the image have arrived. The pixels themselves stay with the caller: the
@@ -1670,6 +1696,26 @@ mod tests {
         let boxed: Vec<_> = (1..=12).map(|n| node(n, "host", 1, 8)).collect();
         assert_eq!(machines(&boxed, AtWork::Cpus, 1)[0].at_work, 8);
         assert_eq!(machines(&boxed[..4], AtWork::Cpus, 1), vec![]);
+    }
+
+    #[test]
+    fn auto_puts_every_node_to_work_where_nodes_wait_for_the_links() {
+        // One machine: every card can be read in place.
+        assert!(!spans_machines(["boot-a"; 86]));
+        assert!(!spans_machines([]));
+        // A rack: a card on another machine, or a machine that gave no boot id.
+        assert!(spans_machines(["boot-a", "boot-a", "boot-b"]));
+        assert!(spans_machines(["boot-a", ""]));
+        assert!(spans_machines([""]));
+        let auto = |link_model, crossing| resolve_at_work(AtWork::Auto, link_model, crossing);
+        assert_eq!(auto(false, false), AtWork::Cpus);
+        assert_eq!(auto(false, true), AtWork::All);
+        assert_eq!(auto(true, false), AtWork::All);
+        // What the user chose stands.
+        for chosen in [AtWork::Cpus, AtWork::All, AtWork::Count(3)] {
+            assert_eq!(resolve_at_work(chosen, true, true), chosen);
+            assert_eq!(resolve_at_work(chosen, false, false), chosen);
+        }
     }
 
     #[test]

@@ -471,8 +471,8 @@ struct RenderArgs {
     /// How many render nodes of one machine work at once: cpus (as many as the CPUs they
     /// report between them, over --render-threads; the others wait and stand in for a lost
     /// one), all (every node, as in the paper), a number, or auto (cpus, except all with a
-    /// link model or with a cache smaller than the scene fetched over sockets, where nodes
-    /// wait rather than compute).
+    /// link model or with a cache smaller than the scene fetched over sockets, as between
+    /// machines, where nodes wait rather than compute).
     #[arg(long, default_value = "auto")]
     at_work: host::schedule::AtWork,
     #[arg(long, default_value_t = 640)]
