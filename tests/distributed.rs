@@ -170,9 +170,7 @@ fn tiny_cluster_matches_in_every_mode() {
     let size = [
         "--width", "96", "--height", "64", "--spp", "3", "--seed", "5",
     ];
-    let reference = dir.join("ref.pfm");
-    let o = render(&[&["--in-process"][..], &size].concat(), &reference, None);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let reference = in_process_to(&dir.join("ref.pfm"), &size);
     let small_cache = [
         "--transfer",
         "demand",
@@ -265,9 +263,7 @@ fn coherent_rays_wait_only_where_a_miss_crosses_a_socket() {
     let size = [
         "--width", "64", "--height", "48", "--spp", "2", "--seed", "3",
     ];
-    let reference = dir.join("ref.pfm");
-    let o = render(&[&["--in-process"][..], &size].concat(), &reference, None);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let reference = in_process_to(&dir.join("ref.pfm"), &size);
     let small_cache = [
         "--spawn",
         "tiny",

@@ -129,14 +129,30 @@ impl Cluster {
     /// Waits until pixels rendered by render node `node` (any node: `None`) reach the host:
     /// the render is under way there, so a kill lands in its middle whatever the machine's
     /// speed.
-    fn wait_for_pixels_from(&self, node: Option<u32>) {
+    /// Waits until `node` (any render node, with `None`) has sent pixels; which node did.
+    fn wait_for_pixels_from(&self, node: Option<u32>) -> u32 {
         let needle = match node {
             Some(n) => format!("MAGG_EVENT pixels node={n} "),
             None => "MAGG_EVENT pixels node=".to_string(),
         };
-        self.host
+        let line = self
+            .host
             .wait_for(&needle, Duration::from_secs(60))
             .unwrap_or_else(|| panic!("no pixels from {node:?}: {}", self.host.log()));
+        line.split("MAGG_EVENT pixels node=")
+            .nth(1)
+            .and_then(|r| r.split_whitespace().next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no node in {line:?}"))
+    }
+
+    /// The host exits with success within `limit`, every node within ten seconds after it;
+    /// the render's stats.
+    fn finishes(&mut self, limit: Duration) -> serde_json::Value {
+        let code = self.host.wait_exit(limit);
+        assert_eq!(code, Some(Some(0)), "host: {}", self.host.log());
+        self.nodes_exit(Duration::from_secs(10));
+        self.stats()
     }
 
     fn node(&mut self, id: u32) -> &mut Logged {
@@ -199,10 +215,7 @@ fn a_killed_render_node_is_routed_around_and_the_image_is_unchanged() {
         line.contains(&format!("pid {victim_pid}")),
         "the message should name the process: {line}"
     );
-    let code = c.host.wait_exit(Duration::from_secs(120));
-    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
-    c.nodes_exit(Duration::from_secs(10));
-    let stats = c.stats();
+    let stats = c.finishes(Duration::from_secs(120));
     let lost = stats["lost_nodes"].as_array().unwrap();
     assert_eq!(lost.len(), 1, "{stats}");
     assert_eq!(lost[0]["node"], 6);
@@ -224,16 +237,7 @@ fn a_killed_render_node_at_work_gives_its_place_to_one_that_waited() {
     let mut args = long_render();
     args.extend(["--at-work", "2"].map(String::from));
     let mut c = start_cluster(&dir, "grid:1x3x3", &args);
-    let line = c
-        .host
-        .wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
-        .unwrap_or_else(|| panic!("no pixels: {}", c.host.log()));
-    let victim: u32 = line
-        .split("MAGG_EVENT pixels node=")
-        .nth(1)
-        .and_then(|r| r.split_whitespace().next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no node in {line:?}"));
+    let victim = c.wait_for_pixels_from(None);
     c.node(victim).kill9();
     c.host
         .wait_for(
@@ -241,10 +245,7 @@ fn a_killed_render_node_at_work_gives_its_place_to_one_that_waited() {
             Duration::from_secs(10),
         )
         .unwrap_or_else(|| panic!("the host did not report the loss: {}", c.host.log()));
-    let code = c.host.wait_exit(Duration::from_secs(180));
-    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
-    c.nodes_exit(Duration::from_secs(10));
-    let stats = c.stats();
+    let stats = c.finishes(Duration::from_secs(180));
     assert_eq!(stats["at_work"], "2", "{stats}");
     let lost = stats["lost_nodes"].as_array().unwrap();
     assert_eq!(lost.len(), 1, "{stats}");
@@ -280,10 +281,7 @@ fn a_render_node_cut_off_from_the_mesh_works_on_over_its_direct_connections() {
     c.host
         .wait_for("lost render node 3", Duration::from_secs(10))
         .unwrap_or_else(|| panic!("{}", c.host.log()));
-    let code = c.host.wait_exit(Duration::from_secs(180));
-    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
-    c.nodes_exit(Duration::from_secs(10));
-    let stats = c.stats();
+    let stats = c.finishes(Duration::from_secs(180));
     let lost: Vec<u64> = stats["lost_nodes"]
         .as_array()
         .unwrap()
@@ -330,10 +328,7 @@ fn fork_node_killed_mid_render(name: &str, fork: u32, watch: u32, extra: &[&str]
             Duration::from_secs(60),
         )
         .unwrap_or_else(|| panic!("no recovery: {}", c.host.log()));
-    let code = c.host.wait_exit(Duration::from_secs(300));
-    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
-    c.nodes_exit(Duration::from_secs(10));
-    let stats = c.stats();
+    let stats = c.finishes(Duration::from_secs(300));
     let lost = stats["lost_nodes"].as_array().unwrap();
     assert_eq!(lost.len(), 1, "{stats}");
     assert_eq!(lost[0]["node"], fork, "{stats}");
@@ -498,10 +493,12 @@ fn strangers_and_late_joiners_are_refused_while_the_render_goes_on() {
         c.host.log()
     );
 
-    let code = c.host.wait_exit(Duration::from_secs(120));
-    assert_eq!(code, Some(Some(0)), "host: {}", c.host.log());
-    c.nodes_exit(Duration::from_secs(10));
-    assert!(c.stats()["lost_nodes"].as_array().unwrap().is_empty());
+    assert!(
+        c.finishes(Duration::from_secs(120))["lost_nodes"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
     same_bytes(&c.out, &in_process(&dir, &args));
 }
 
