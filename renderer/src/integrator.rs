@@ -19,7 +19,7 @@ use crate::{
     math::{offset_ray_origin, power_heuristic},
     ray::Ray,
     render::RenderSettings,
-    sampler::{SampleKey, Sampler},
+    sampler::{PIXEL_DIM, SampleKey, Sampler},
     source::{DataError, SceneData},
     trace::{AlphaKey, Tracer, shadow_ray},
 };
@@ -211,6 +211,10 @@ pub struct PathState {
     /// mirror or glass bounce came by a caustic path.
     scattered_rough: bool,
     bounce: u32,
+    /// The dimension of the draw that chose this ray's direction (the pixel position's for
+    /// the camera ray): the light sample where the ray lands continues it
+    /// ([`Sampler::get_2d_after`]).
+    direction_dim: u32,
     /// The sample's key for draws not on the sampler's dimensions (alpha).
     sample: SampleKey,
 }
@@ -226,6 +230,7 @@ impl PathState {
             medium: None,
             scattered_rough: false,
             bounce: 0,
+            direction_dim: PIXEL_DIM,
             sample: sampler.key(),
         }
     }
@@ -331,7 +336,7 @@ impl PathState {
 
         // Next-event estimation. One 2D draw picks the light and the point on it, so the
         // points of a pixel's samples are stratified over all the lights together.
-        let u_light = sampler.get_2d();
+        let u_light = sampler.get_2d_after(self.direction_dim);
         if !bsdf.is_pure_delta()
             && let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0)
         {
@@ -357,6 +362,7 @@ impl PathState {
         self.l = l;
 
         // Continue the path.
+        let direction_dim = sampler.dim();
         let u_dir = sampler.get_2d();
         // A Lambertian surface has one lobe: no number is spent choosing it.
         let u_lobe = if bsdf.is_lambert() {
@@ -390,6 +396,7 @@ impl PathState {
         self.ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
         t.count_secondary_ray();
         self.prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
+        self.direction_dim = direction_dim;
         self.scattered_rough |= !bs.delta;
         Ok(true)
     }
