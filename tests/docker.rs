@@ -246,6 +246,8 @@ fn in_process_here(dir: &Path, args: &[&str]) -> PathBuf {
     in_process(dir, &args)
 }
 
+/// With a cache smaller than the scene, so that render nodes fetch on demand: the compose
+/// file gives every container a /dev/shm of its own, so those fetches cross sockets.
 const SMALL_RENDER: &[&str] = &[
     "/input/cornell/cornell.gltf",
     "--width",
@@ -254,6 +256,8 @@ const SMALL_RENDER: &[&str] = &[
     "64",
     "--spp",
     "16",
+    "--cache",
+    "50",
 ];
 
 /// Long enough (several seconds) that a fault lands in the middle of it.
@@ -287,6 +291,15 @@ fn the_magg_topology_in_containers_matches_one_process() {
         .map(|m| m["advertise"].as_str().unwrap().split(':').next().unwrap())
         .collect();
     assert_eq!(ips.len(), 85, "every node in its own container: {ips:?}");
+    // One machine, but no container sees another's shared memory: `--at-work auto` lets
+    // every render node work, as across machines, rather than as many as the CPUs.
+    let domains: std::collections::HashSet<&str> = members
+        .iter()
+        .map(|m| m["shm_domain"].as_str().unwrap())
+        .collect();
+    assert_eq!(domains.len(), 85, "a /dev/shm per container: {domains:?}");
+    assert_eq!(stats["at_work"], "auto", "{stats}");
+    assert_eq!(stats["machine_limits"], serde_json::json!([]), "{stats}");
     same_bytes(&p.out(), &in_process_here(&p.dir, SMALL_RENDER));
     p.all_stopped(Duration::from_secs(10));
 }

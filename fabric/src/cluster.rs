@@ -611,6 +611,7 @@ async fn register_with_host(
         pid: std::process::id(),
         hostname: hostname(),
         boot_id: boot_id(),
+        shm_domain: crate::shm::domain(&boot_id()),
         cpus: std::thread::available_parallelism().map_or(1, |n| n.get() as u32),
         machine_cpus: machine_cpus(),
     };

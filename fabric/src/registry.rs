@@ -34,6 +34,8 @@ pub struct Registration {
     pub hostname: String,
     /// Which boot of which machine it runs on (nodes with the host's share its clock).
     pub boot_id: String,
+    /// Which shared memory it sees ([`crate::shm::domain`]).
+    pub shm_domain: String,
     /// CPUs the process may run on, and CPUs online on its machine.
     pub cpus: u32,
     pub machine_cpus: u32,
@@ -49,6 +51,7 @@ impl Registration {
                 pid,
                 hostname,
                 boot_id,
+                shm_domain,
                 cpus,
                 machine_cpus,
             } => Some(Registration {
@@ -57,6 +60,7 @@ impl Registration {
                 pid,
                 hostname,
                 boot_id,
+                shm_domain,
                 cpus,
                 machine_cpus,
             }),
@@ -74,6 +78,9 @@ pub struct Member {
     pub pid: u32,
     pub hostname: String,
     pub boot_id: String,
+    /// Which shared memory it sees: render nodes read a card's segment in place only with
+    /// its fork node's domain.
+    pub shm_domain: String,
     /// CPUs the process may run on, and CPUs online on its machine (the host's scheduler
     /// keeps a machine from running more render nodes at once than it has CPUs).
     pub cpus: u32,
@@ -209,6 +216,7 @@ impl Registry {
                 pid: registration.pid,
                 hostname: registration.hostname,
                 boot_id: registration.boot_id,
+                shm_domain: registration.shm_domain,
                 cpus: registration.cpus,
                 machine_cpus: registration.machine_cpus,
             },
@@ -395,6 +403,7 @@ mod tests {
                 "other"
             }
             .into(),
+            shm_domain: "box-shm".into(),
             cpus: 2,
             machine_cpus: 2,
         }
@@ -652,6 +661,7 @@ mod tests {
             pid: 7,
             hostname: "h".into(),
             boot_id: "b".into(),
+            shm_domain: "b/1:2".into(),
             cpus: 2,
             machine_cpus: 4,
         };

@@ -36,6 +36,19 @@ use protocol::{DataId, NodeId};
 /// Where segments live: the tmpfs that POSIX shared memory uses on Linux.
 pub const SHM_DIR: &str = "/dev/shm";
 
+/// Which shared memory this process sees: its machine's boot id and the identity of the
+/// filesystem mounted at [`SHM_DIR`] (device and inode). Processes with the same domain can
+/// open each other's segments; a container has a `/dev/shm` of its own unless it shares
+/// another's IPC namespace, so two containers on one machine (one boot id) may not. Empty
+/// when there is no such directory: nothing can be shared.
+pub fn domain(boot_id: &str) -> String {
+    use std::os::unix::fs::MetadataExt;
+    match std::fs::metadata(SHM_DIR) {
+        Ok(m) if !boot_id.is_empty() => format!("{boot_id}/{:x}:{}", m.dev(), m.ino()),
+        _ => String::new(),
+    }
+}
+
 const MAGIC: u32 = u32::from_le_bytes(*b"MGSM");
 const VERSION: u32 = 2;
 pub const HEADER_WORDS: usize = 8;
@@ -361,6 +374,21 @@ mod tests {
 
     fn dir() -> tempdir::Dir {
         tempdir::Dir::new()
+    }
+
+    /// Processes of one machine that see one /dev/shm share a domain; another machine's
+    /// boot id makes another; a machine that gave no boot id shares nothing.
+    #[test]
+    fn the_shared_memory_domain_names_the_machine_and_its_shm_mount() {
+        if !Path::new(SHM_DIR).is_dir() {
+            eprintln!("SKIPPED: no {SHM_DIR} here");
+            return;
+        }
+        let here = domain("boot-a");
+        assert!(here.starts_with("boot-a/"), "{here}");
+        assert_eq!(here, domain("boot-a"));
+        assert_ne!(here, domain("boot-b"));
+        assert_eq!(domain(""), "");
     }
 
     /// A private directory per test, removed at the end (no crate needed for so little).

@@ -702,15 +702,16 @@ fn plan_job(
     // of them at work fill those waits (the spheres at cache 5% over TCP, 320x240 at 16 spp:
     // 29 to 64 s with two at work, 25 s with 16 or all). Where every miss is a read in place,
     // or the cache holds the whole scene, nothing waits long. A card is read in place only
-    // from its own machine, and a render node reads every card.
+    // where its fork node's shared memory is seen (its machine, and there not from a
+    // container with a /dev/shm of its own), and a render node reads every card.
     let cards_and_nodes = members
         .iter()
         .filter(|m| matches!(m.role, Role::Render | Role::Fork))
-        .map(|m| m.boot_id.as_str());
+        .map(|m| m.shm_domain.as_str());
     let misses_cross_sockets = misses
         && (config.dma_transport == protocol::DmaTransport::Tcp
             || config.demand_via == Transfer::Serial
-            || schedule::spans_machines(cards_and_nodes));
+            || schedule::spans_shared_memories(cards_and_nodes));
     let at_work = schedule::resolve_at_work(config.at_work, !no_link_model, misses_cross_sockets);
     let on_machines: Vec<schedule::NodeMachine<'_>> = members
         .iter()

@@ -280,12 +280,13 @@ pub fn machines(nodes: &[NodeMachine<'_>], at_work: AtWork, threads_per_node: u3
         .collect()
 }
 
-/// Whether render and fork nodes run on more than one machine (or on one that gave no boot
-/// id), so that some render node's demand fetches must cross a socket: a card's shared
-/// memory is mapped only on its own machine.
-pub fn spans_machines<'a>(boot_ids: impl IntoIterator<Item = &'a str>) -> bool {
+/// Whether render and fork nodes see more than one shared memory (`fabric::shm::domain`:
+/// more than one machine, or containers with a `/dev/shm` each), or one of them none, so
+/// that some render node's demand fetches must cross a socket: a card's segment can be
+/// mapped only where its fork node's shared memory is seen.
+pub fn spans_shared_memories<'a>(domains: impl IntoIterator<Item = &'a str>) -> bool {
     let mut first = None;
-    for id in boot_ids {
+    for id in domains {
         if id.is_empty() || *first.get_or_insert(id) != id {
             return true;
         }
@@ -1701,12 +1702,18 @@ mod tests {
     #[test]
     fn auto_puts_every_node_to_work_where_nodes_wait_for_the_links() {
         // One machine: every card can be read in place.
-        assert!(!spans_machines(["boot-a"; 86]));
-        assert!(!spans_machines([]));
-        // A rack: a card on another machine, or a machine that gave no boot id.
-        assert!(spans_machines(["boot-a", "boot-a", "boot-b"]));
-        assert!(spans_machines(["boot-a", ""]));
-        assert!(spans_machines([""]));
+        assert!(!spans_shared_memories(["boot-a/2a:1"; 86]));
+        assert!(!spans_shared_memories([]));
+        // A rack (a card on another machine), containers of one machine with a /dev/shm
+        // each, or a node that sees no shared memory.
+        assert!(spans_shared_memories([
+            "boot-a/2a:1",
+            "boot-a/2a:1",
+            "boot-b/2a:1"
+        ]));
+        assert!(spans_shared_memories(["boot-a/2a:1", "boot-a/2b:1"]));
+        assert!(spans_shared_memories(["boot-a/2a:1", ""]));
+        assert!(spans_shared_memories([""]));
         let auto = |link_model, crossing| resolve_at_work(AtWork::Auto, link_model, crossing);
         assert_eq!(auto(false, false), AtWork::Cpus);
         assert_eq!(auto(false, true), AtWork::All);

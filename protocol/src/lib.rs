@@ -43,7 +43,7 @@ pub use message::{
 };
 
 /// Bumped whenever the frame layout or the message set changes incompatibly.
-pub const PROTOCOL_VERSION: u32 = 9;
+pub const PROTOCOL_VERSION: u32 = 10;
 
 /// What this process was built from: crate version, hashes of the workspace's sources and of
 /// the lock file, target architecture and instruction-set features (the root package's

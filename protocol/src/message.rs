@@ -144,6 +144,9 @@ pub enum Message {
         pid: u32,
         hostname: String,
         boot_id: String,
+        /// Which shared memory it sees (`fabric::shm::domain`): nodes with the same one can
+        /// map each other's segments.
+        shm_domain: String,
         /// CPUs this process may run on (its affinity and CPU quota counted).
         cpus: u32,
         /// CPUs online on its machine.
