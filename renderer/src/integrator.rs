@@ -295,12 +295,13 @@ impl PathState {
         };
         // Whatever below may still fail for data (a texture tile), the state is only
         // written once nothing can: a bounce run again must start from the same state.
-        let mut beta = self.beta
-            * attenuate(
-                hit.tri_hit.t,
-                &ray,
-                self.medium.map(|m| &scene.materials[m as usize]),
-            );
+        // Most paths travel through no medium: no call and no product by one for them.
+        let mut beta = match self.medium {
+            Some(m) => {
+                self.beta * attenuate(hit.tri_hit.t, &ray, Some(&scene.materials[m as usize]))
+            }
+            None => self.beta,
+        };
         let mut l = self.l;
 
         let m = &scene.materials[hit.chunk.header().material as usize];
