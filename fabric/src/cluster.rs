@@ -605,13 +605,14 @@ async fn register_with_host(
         identity,
     )
     .await?;
+    let boot = boot_id();
     let register = Message::Register {
         role: cfg.role,
         advertise: advertise.to_string(),
         pid: std::process::id(),
         hostname: hostname(),
-        boot_id: boot_id(),
-        shm_domain: crate::shm::domain(&boot_id()),
+        shm_domain: crate::shm::domain(&boot),
+        boot_id: boot,
         cpus: std::thread::available_parallelism().map_or(1, |n| n.get() as u32),
         machine_cpus: machine_cpus(),
     };

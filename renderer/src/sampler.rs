@@ -243,7 +243,14 @@ impl Sampler<'_> {
     fn seeds(&mut self) -> (u32, u32, u32) {
         let dim = self.dim;
         self.dim = self.dim.wrapping_add(1);
-        let [shuffle, sx, sy, _] = match self.cache.get(dim as usize) {
+        let [shuffle, sx, sy, _] = self.seeds_of(dim);
+        (shuffle, sx, sy)
+    }
+
+    /// The seeds of dimension `dim`, from the pixel's kept ones where they are.
+    #[inline(always)]
+    fn seeds_of(&self, dim: u32) -> DimSeeds {
+        match self.cache.get(dim as usize) {
             Some(cell) => {
                 let cached = cell.get();
                 if cached[3] != 0 {
@@ -255,8 +262,7 @@ impl Sampler<'_> {
                 }
             }
             None => dim_seeds(self.pixel, dim),
-        };
-        (shuffle, sx, sy)
+        }
     }
 
     /// The sample's index in this dimension's order: the Owen scrambling of its index.
@@ -294,11 +300,7 @@ impl Sampler<'_> {
     #[inline]
     pub fn get_2d_after(&mut self, first: u32) -> (f32, f32) {
         let (_, sx, sy) = self.seeds();
-        let shuffle = match self.cache.get(first as usize) {
-            Some(cell) if cell.get()[3] != 0 => cell.get()[0],
-            _ => dim_seeds(self.pixel, first)[0],
-        };
-        let index = self.shuffled(shuffle);
+        let index = self.shuffled(self.seeds_of(first)[0]);
         let (x, y) = reverse_pair(
             laine_karras(sobol_reversed(&SOBOL_THIRD_REVERSED, index), sx),
             laine_karras(sobol_reversed(&SOBOL_FOURTH_REVERSED, index), sy),
@@ -338,12 +340,14 @@ impl Sampler<'_> {
 mod tests {
     use super::*;
 
+    /// Owen scrambling of a fraction given as 32 bits, most significant first.
+    fn owen(x: u32, seed: u32) -> u32 {
+        reverse(laine_karras(reverse(x), seed))
+    }
+
     /// The tables and folded reversals give the textbook construction's numbers.
     #[test]
     fn draws_are_owen_scrambled_sobol_points() {
-        fn owen(x: u32, seed: u32) -> u32 {
-            reverse(laine_karras(reverse(x), seed))
-        }
         fn sobol_second(mut index: u32) -> u32 {
             let (mut v, mut x) = (1u32 << 31, 0);
             while index != 0 {
@@ -377,9 +381,6 @@ mod tests {
     /// m_k = 4 m_{k-2} ^ 8 m_{k-3} ^ m_{k-3} for x^3 + x + 1 from 1, 3, 1).
     #[test]
     fn draws_after_are_the_third_and_fourth_sobol_dimensions() {
-        fn owen(x: u32, seed: u32) -> u32 {
-            reverse(laine_karras(reverse(x), seed))
-        }
         fn point(m: &[u64], mut index: u32) -> u32 {
             let mut x = 0u32;
             let mut k = 0;
