@@ -123,17 +123,15 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     assert_eq!(t["paths_deferred"].as_u64().unwrap(), 0, "{t}");
     assert_eq!(v["ask_ahead"], true, "the default");
     // With links of no delay model, requests for work go straight to the host: they do not
-    // cross the fork nodes, which through the mesh each of 4 cards' requests and answers do.
+    // cross the fork nodes (which carry only pixels now), every one came over the render
+    // node's own connection.
     assert_eq!(v["ask_via"], "control", "the default without a link model");
     let subscreens = v["subscreen_count"].as_u64().unwrap();
-    let through_forks: u64 = nodes
-        .iter()
-        .filter(|n| n["role"] == "Fork")
-        .map(|n| n["frames_forwarded"].as_u64().unwrap())
-        .sum();
+    assert_eq!(v["requests_via"]["mesh"], 0, "{}", v["requests_via"]);
     assert!(
-        through_forks < subscreens,
-        "{through_forks} frames through fork nodes for {subscreens} subscreens"
+        v["requests_via"]["control"].as_u64().unwrap() >= subscreens,
+        "{} for {subscreens} subscreens",
+        v["requests_via"]
     );
     let fetched =
         t["bytes_fetched_dma"].as_u64().unwrap() + t["bytes_fetched_serial"].as_u64().unwrap();
@@ -244,13 +242,24 @@ fn tiny_cluster_matches_in_every_mode() {
     ];
     for (i, mode) in modes.iter().enumerate() {
         let out = dir.join(format!("m{i}.pfm"));
+        let stats = dir.join(format!("m{i}.json"));
         let o = render(
             &[&["--spawn", "tiny"][..], mode, &size].concat(),
             &out,
-            None,
+            Some(&stats),
         );
         assert!(o.status.success(), "{mode:?}: {}", stderr(&o));
         same_bytes(&out, &reference);
+        // Requests for work came the way asked for (the mesh where the paper's links are
+        // modelled or where asked, else each render node's own connection), and only that way.
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats).unwrap()).unwrap();
+        let (asked, other) = match v["ask_via"].as_str().unwrap() {
+            "mesh" => ("mesh", "control"),
+            _ => ("control", "mesh"),
+        };
+        let via = &v["requests_via"];
+        assert!(via[asked].as_u64().unwrap() > 0, "{mode:?}: {via}");
+        assert_eq!(via[other], 0, "{mode:?}: {via}");
     }
 }
 

@@ -147,8 +147,11 @@ pub struct ClusterStats {
     pub coherent_rays: String,
     /// Whether render nodes asked for their next subscreen as they began one.
     pub ask_ahead: bool,
-    /// How their requests for work travelled: `mesh` or `control`.
+    /// How their requests for work travelled: `mesh` or `control`, as asked for ...
     pub ask_via: String,
+    /// ... and as they came in (repeats of a request included): through the mesh of fork
+    /// nodes, or over the render node's own connection to the host.
+    pub requests_via: RequestsVia,
     /// How many render nodes of one machine were let work at once, as asked (`auto`,
     /// `cpus`, `all` or a number) ...
     pub at_work: String,
@@ -507,6 +510,7 @@ async fn drive(
             plan: &plan,
             subscreens: frame.scheduler.planned(),
             subscreens_split: frame.scheduler.split(),
+            requests_via: frame.requests_via,
             times: std::mem::take(&mut frame.times),
             nodes,
             lost_nodes: faults.lost,
@@ -773,6 +777,7 @@ struct Rendering {
     checkpoint_failed: bool,
     /// The frames of requests for work not answered yet, to answer them by.
     requests: HashMap<Request, (Frame, Via)>,
+    requests_via: RequestsVia,
     times: SubscreenTimes,
     progress: Progress,
     /// The scene as the host sent it and where its items are: a lost fork node's share is
@@ -832,6 +837,7 @@ impl Rendering {
             last_checkpoint: now,
             checkpoint_failed: false,
             requests: HashMap::new(),
+            requests_via: RequestsVia::default(),
             times: SubscreenTimes {
                 began: Some(now),
                 ..SubscreenTimes::default()
@@ -960,6 +966,10 @@ impl Rendering {
                     node: sender,
                     tag: frame.header.tag,
                 };
+                match via {
+                    Via::Control(_) => self.requests_via.control += 1,
+                    Via::Mesh(_) | Via::Direct(_) => self.requests_via.mesh += 1,
+                }
                 // A repeat of a waiting request is answered by the first one's frame, the way
                 // it came.
                 self.requests.entry(request).or_insert((frame, via));
@@ -1306,12 +1316,20 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
     t
 }
 
+/// Render nodes' requests for work, by the way they reached the host.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct RequestsVia {
+    pub mesh: u64,
+    pub control: u64,
+}
+
 /// What a finished render leaves for its statistics.
 struct Finished<'a> {
     scene: &'a SceneHeader,
     plan: &'a JobPlan,
     subscreens: u32,
     subscreens_split: u32,
+    requests_via: RequestsVia,
     times: SubscreenTimes,
     nodes: Vec<NodeStats>,
     lost_nodes: Vec<LostNode>,
@@ -1390,6 +1408,7 @@ fn cluster_stats(
         coherent_rays: done.plan.job.coherent_rays.as_str().into(),
         ask_ahead: done.plan.job.ask_ahead,
         ask_via: done.plan.job.ask_via.as_str().into(),
+        requests_via: done.requests_via,
         at_work: config.at_work.to_string(),
         machine_limits: done.plan.machines.clone(),
         link_model: format!("{:?}", topo.model.link),
