@@ -629,7 +629,10 @@ struct Lanes {
 }
 
 impl Lanes {
-    /// The hit of `lane`, as the scalar test would report it.
+    /// The hit of `lane`, as the scalar test would report it. Inlined: out of line, it
+    /// wrote the hit as four scalars that its caller read back as one 16-byte word, a load
+    /// the store buffer cannot forward.
+    #[inline(always)]
     fn hit(&self, lane: usize) -> TriHit {
         let (mut u, mut v, mut w, mut inv) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
         self.u.store(&mut u);
