@@ -338,6 +338,21 @@ impl PathState {
         // Next-event estimation. One 2D draw picks the light and the point on it, so the
         // points of a pixel's samples are stratified over all the lights together.
         let u_light = sampler.get_2d_after(self.direction_dim);
+
+        // Where the path goes on is drawn now, though used only after the light sample: it
+        // depends on nothing the light sample finds, and placed here its chain of divisions
+        // and square roots runs while the processor works on the light sample and its shadow
+        // ray, instead of after them. The draws keep their dimensions (each is keyed by its
+        // dimension), so the numbers, and the image, are the same.
+        let direction_dim = sampler.dim();
+        let u_dir = sampler.get_2d();
+        // A Lambertian surface has one lobe: no number is spent choosing it.
+        let u_lobe = if bsdf.is_lambert() {
+            0.0
+        } else {
+            sampler.get_1d()
+        };
+        let next = bsdf.sample(wo, u_lobe, u_dir);
         if !bsdf.is_pure_delta()
             && let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0)
         {
@@ -363,15 +378,7 @@ impl PathState {
         self.l = l;
 
         // Continue the path.
-        let direction_dim = sampler.dim();
-        let u_dir = sampler.get_2d();
-        // A Lambertian surface has one lobe: no number is spent choosing it.
-        let u_lobe = if bsdf.is_lambert() {
-            0.0
-        } else {
-            sampler.get_1d()
-        };
-        let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else {
+        let Some(bs) = next else {
             return Ok(false);
         };
         beta *= bs.weight;
