@@ -76,8 +76,8 @@ pub struct WideTree {
 
 /// Expected cost of testing a wide node and a leaf, relative to each other (the four-lane
 /// triangle test of a leaf costs about what the eight-lane box test of a node does).
-const NODE_COST: f32 = 1.0;
-const LEAF_COST: f32 = 1.0;
+const NODE_COST: f64 = 1.0;
+const LEAF_COST: f64 = 1.0;
 
 /// Builds a tree over boxes with at most `max_leaf` (1 to 4) primitives a leaf.
 pub fn build(boxes: &[Aabb], max_leaf: u32) -> WideTree {
@@ -162,7 +162,10 @@ struct Collapser {
     /// node's eight slots between its children (valid for the tree last planned).
     how: Vec<[Choice; 8]>,
     node_split: Vec<u8>,
-    cost: Vec<[f32; 8]>,
+    /// In f64: the box areas of finite f32 coordinates overflow f32 (a mesh spanning 1e20
+    /// units), and infinite costs left every choice tied, which chose leaves of more
+    /// primitives than a leaf holds.
+    cost: Vec<[f64; 8]>,
     prims: Vec<u32>,
     post: Vec<usize>,
 }
@@ -175,7 +178,7 @@ impl Collapser {
         // Every entry of the subtree is written before it is read: no need to clear.
         self.how.resize(n, [Choice::Fewer; 8]);
         self.node_split.resize(n, 0);
-        self.cost.resize(n, [f32::INFINITY; 8]);
+        self.cost.resize(n, [f64::INFINITY; 8]);
         self.prims.resize(n, 0);
         self.plan(b, root, max_leaf.clamp(1, MAX_LEAF));
         let mut out = WideTree {
@@ -191,13 +194,13 @@ impl Collapser {
         let mut post = std::mem::take(&mut self.post);
         post_order(b, root, &mut post);
         for &i in &post {
-            let area = n[i].aabb.half_area().max(0.0);
+            let area = half_area_f64(&n[i].aabb);
             if n[i].prim_count != 0 {
                 self.prims[i] = n[i].prim_count;
                 let leaf = if self.prims[i] <= max_leaf {
                     area * LEAF_COST
                 } else {
-                    f32::INFINITY
+                    f64::INFINITY
                 };
                 self.cost[i] = [leaf; 8];
                 self.how[i] = [Choice::Fewer; 8];
@@ -208,7 +211,7 @@ impl Collapser {
             self.prims[i] = self.prims[l] + self.prims[r];
             let (cl, cr) = (self.cost[l], self.cost[r]);
             // distribute[j]: the children in at most j + 1 slots.
-            let mut distribute = [(f32::INFINITY, 0u8); 8];
+            let mut distribute = [(f64::INFINITY, 0u8); 8];
             for (j, d) in distribute.iter_mut().enumerate().skip(1) {
                 for k in 1..=j {
                     let cost = cl[k - 1] + cr[j - k];
@@ -222,11 +225,11 @@ impl Collapser {
             let as_leaf = if self.prims[i] <= max_leaf {
                 area * LEAF_COST
             } else {
-                f32::INFINITY
+                f64::INFINITY
             };
-            let mut cost = [0.0f32; 8];
+            let mut cost = [0.0f64; 8];
             let mut how = [Choice::Fewer; 8];
-            (cost[0], how[0]) = if as_leaf <= as_node {
+            (cost[0], how[0]) = if self.prims[i] <= max_leaf && as_leaf <= as_node {
                 (as_leaf, Choice::Leaf)
             } else {
                 (as_node, Choice::Node)
@@ -298,6 +301,14 @@ impl Collapser {
         }
         me as u32
     }
+}
+
+/// Half the surface area of a box, in f64 (finite for any finite f32 box; 0 for an empty or
+/// inverted one).
+fn half_area_f64(b: &Aabb) -> f64 {
+    let d = [0, 1, 2].map(|k| (b.max[k] as f64 - b.min[k] as f64).max(0.0));
+    let a = d[0] * d[1] + d[1] * d[2] + d[2] * d[0];
+    if a.is_finite() { a } else { 0.0 }
 }
 
 /// Appends every primitive of binary subtree `i` to the leaf order.
@@ -392,6 +403,25 @@ mod tests {
                 Aabb::new(Vec3A::new(x, y, z), Vec3A::new(x + 0.5, y + 0.5, z + 0.5))
             })
             .collect()
+    }
+
+    /// Boxes far apart enough that their areas overflow f32 (a mesh spanning 1e30 units)
+    /// still make a tree of leaves of at most four: the builder once chose a leaf of every
+    /// primitive below a node whose cost had become infinite, and panicked emitting it.
+    #[test]
+    fn boxes_whose_areas_overflow_f32_still_build() {
+        let b: Vec<Aabb> = (0..300)
+            .map(|i| {
+                let x = 1.3f32.powi(i);
+                Aabb::new(Vec3A::new(x, -x, -x), Vec3A::new(1.1 * x, x, x))
+            })
+            .collect();
+        assert!(b[299].half_area().is_infinite());
+        let t = build(&b, 4);
+        assert!(validate_tree(&t.nodes, b.len()).is_ok());
+        let mut order = t.order.clone();
+        order.sort();
+        assert_eq!(order, (0..300).collect::<Vec<u32>>());
     }
 
     #[test]
