@@ -1168,6 +1168,75 @@ mod tests {
 
     /// A chunk of one leaf is tested without its tree: the same hits as every triangle
     /// tested on its own, misses included, for the closest and the any-hit query.
+    /// A deep tree (triangles at exponentially growing distances nest their boxes one in
+    /// the next, out to 1e34) finds what brute force finds, nearest and every hit.
+    #[test]
+    fn a_deep_tree_finds_what_brute_force_finds() {
+        let mut m = MeshData::default();
+        for i in 0..300 {
+            let x = 1.3f32.powi(i);
+            let s = x * 0.1;
+            let base = m.positions.len() as u32;
+            m.positions.extend([
+                Vec3::new(x, -s, -s),
+                Vec3::new(x, s, -s),
+                Vec3::new(x + s, 0.0, s),
+            ]);
+            m.triangles.push([base, base + 1, base + 2]);
+        }
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let depth = levels(&chunk.accel().nodes);
+        assert!(depth > 16, "a tree of {depth} levels");
+        let mut r = Lcg(5);
+        let mut hits = 0;
+        for k in 0..600 {
+            let target = chunk.tri_positions()[k % m.triangles.len()];
+            let (a, b, c) = crate::chunk::tri_points(&target);
+            let aim = Vec3::from((a + b + c) / 3.0);
+            let o = aim + r.vec(1.0) * (aim.x * 0.5) + Vec3::new(0.0, 0.0, aim.x);
+            let q = RayQuery::new(&Ray::infinite(o, (aim - o).normalize()));
+            let mut tmax = f32::INFINITY;
+            let got = chunk.intersect(&q, &mut tmax).map(|(i, h)| (h.t, i));
+            let mut brute: Option<(f32, u32)> = None;
+            let mut all_hits = Vec::new();
+            for (i, p) in chunk.tri_positions().iter().enumerate() {
+                let (a, b, c) = crate::chunk::tri_points(p);
+                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY) {
+                    all_hits.push(i as u32);
+                    if brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j)) {
+                        brute = Some((h.t, i as u32));
+                    }
+                }
+            }
+            assert_eq!(got, brute);
+            let mut seen = Vec::new();
+            chunk.for_each_hit(&q, f32::INFINITY, |tri, _| {
+                seen.push(tri);
+                Visit::Continue
+            });
+            seen.sort();
+            assert_eq!(seen, all_hits);
+            hits += usize::from(got.is_some());
+        }
+        assert!(hits > 150, "the test should meet many hits, met {hits}");
+    }
+
+    /// Levels of a walking-form tree from its root down.
+    fn levels(nodes: &[Node8]) -> u32 {
+        let mut deepest = 0;
+        let mut work = vec![(0usize, 1u32)];
+        while let Some((i, d)) = work.pop() {
+            deepest = deepest.max(d);
+            for &c in &nodes[i].child {
+                if c & LEAF == 0 && c != 0 {
+                    work.push((c as usize, d + 1));
+                }
+            }
+        }
+        deepest
+    }
+
     #[test]
     fn a_chunk_of_one_leaf_finds_what_brute_force_finds() {
         let mut m = grid(1, 0.0);
