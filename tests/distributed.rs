@@ -123,8 +123,9 @@ fn magg_cluster_with_a_five_percent_cache_matches_one_process() {
     assert_eq!(t["paths_deferred"].as_u64().unwrap(), 0, "{t}");
     assert_eq!(v["ask_ahead"], true, "the default");
     // With links of no delay model, requests for work go straight to the host: they do not
-    // cross the fork nodes (which carry only pixels now), every one came over the render
-    // node's own connection.
+    // cross the fork nodes (which still carry pixels on their way to the host, as many as
+    // the render nodes at work make cross them): every one came over the render node's own
+    // connection.
     assert_eq!(v["ask_via"], "control", "the default without a link model");
     let subscreens = v["subscreen_count"].as_u64().unwrap();
     assert_eq!(v["requests_via"]["mesh"], 0, "{}", v["requests_via"]);

@@ -1166,8 +1166,6 @@ mod tests {
         }
     }
 
-    /// A chunk of one leaf is tested without its tree: the same hits as every triangle
-    /// tested on its own, misses included, for the closest and the any-hit query.
     /// A deep tree (triangles at exponentially growing distances nest their boxes one in
     /// the next, out to 1e34) finds what brute force finds, nearest and every hit.
     #[test]
@@ -1237,6 +1235,8 @@ mod tests {
         deepest
     }
 
+    /// A chunk of one leaf is tested without its tree: the same hits as every triangle
+    /// tested on its own, misses included, for the closest and the any-hit query.
     #[test]
     fn a_chunk_of_one_leaf_finds_what_brute_force_finds() {
         let mut m = grid(1, 0.0);
