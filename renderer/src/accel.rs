@@ -945,7 +945,7 @@ impl Bvh8 {
 mod tests {
     use super::*;
     use crate::{
-        chunk::{MeshData, build_chunk},
+        chunk::{Chunk, MeshData, build_chunk},
         ray::Ray,
     };
     use glam::{Vec3, Vec3A};
@@ -1194,30 +1194,36 @@ mod tests {
             let aim = Vec3::from((a + b + c) / 3.0);
             let o = aim + r.vec(1.0) * (aim.x * 0.5) + Vec3::new(0.0, 0.0, aim.x);
             let q = RayQuery::new(&Ray::infinite(o, (aim - o).normalize()));
-            let mut tmax = f32::INFINITY;
-            let got = chunk.intersect(&q, &mut tmax).map(|(i, h)| (h.t, i));
-            let mut brute: Option<(f32, u32)> = None;
-            let mut all_hits = Vec::new();
-            for (i, p) in chunk.tri_positions().iter().enumerate() {
-                let (a, b, c) = crate::chunk::tri_points(p);
-                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY) {
-                    all_hits.push(i as u32);
-                    if brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j)) {
-                        brute = Some((h.t, i as u32));
-                    }
-                }
-            }
-            assert_eq!(got, brute);
-            let mut seen = Vec::new();
-            chunk.for_each_hit(&q, f32::INFINITY, |tri, _| {
-                seen.push(tri);
-                Visit::Continue
-            });
-            seen.sort();
-            assert_eq!(seen, all_hits);
-            hits += usize::from(got.is_some());
+            hits += usize::from(finds_what_brute_force_finds(&chunk, &q));
         }
         assert!(hits > 150, "the test should meet many hits, met {hits}");
+    }
+
+    /// Checks one ray against `chunk`: the closest hit and the set of all hits are those of
+    /// every triangle tested on its own. Whether the ray hit anything.
+    fn finds_what_brute_force_finds(chunk: &Chunk, q: &RayQuery) -> bool {
+        let mut tmax = f32::INFINITY;
+        let got = chunk.intersect(q, &mut tmax).map(|(i, h)| (h.t, i));
+        let mut brute: Option<(f32, u32)> = None;
+        let mut all_hits = Vec::new();
+        for (i, p) in chunk.tri_positions().iter().enumerate() {
+            let (a, b, c) = crate::chunk::tri_points(p);
+            if let Some(h) = triangle::intersect(q, a, b, c, f32::INFINITY) {
+                all_hits.push(i as u32);
+                if brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j)) {
+                    brute = Some((h.t, i as u32));
+                }
+            }
+        }
+        assert_eq!(got, brute);
+        let mut seen = Vec::new();
+        chunk.for_each_hit(q, f32::INFINITY, |tri, _| {
+            seen.push(tri);
+            Visit::Continue
+        });
+        seen.sort();
+        assert_eq!(seen, all_hits);
+        got.is_some()
     }
 
     /// Levels of a walking-form tree from its root down.
@@ -1253,28 +1259,7 @@ mod tests {
             let o = r.vec(2.0);
             let d = (Vec3::new(r.next(), r.next(), r.next() - 0.5) - o).normalize();
             let q = RayQuery::new(&Ray::infinite(o, d));
-            let mut tmax = f32::INFINITY;
-            let got = chunk.intersect(&q, &mut tmax).map(|(i, h)| (h.t, i));
-            let mut brute: Option<(f32, u32)> = None;
-            let mut all_hits = Vec::new();
-            for (i, p) in chunk.tri_positions().iter().enumerate() {
-                let (a, b, c) = crate::chunk::tri_points(p);
-                if let Some(h) = triangle::intersect(&q, a, b, c, f32::INFINITY) {
-                    all_hits.push(i as u32);
-                    if brute.is_none_or(|(t, j)| (h.t, i as u32) < (t, j)) {
-                        brute = Some((h.t, i as u32));
-                    }
-                }
-            }
-            assert_eq!(got, brute);
-            let mut seen = Vec::new();
-            chunk.for_each_hit(&q, f32::INFINITY, |tri, _| {
-                seen.push(tri);
-                Visit::Continue
-            });
-            seen.sort();
-            assert_eq!(seen, all_hits);
-            hits += usize::from(got.is_some());
+            hits += usize::from(finds_what_brute_force_finds(&chunk, &q));
         }
         assert!(hits > 200, "the test should meet many hits, met {hits}");
     }
