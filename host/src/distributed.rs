@@ -1441,9 +1441,11 @@ fn event_first_pixels(node: NodeId, subscreen: u32) {
 /// asks once its last subscreen's figures are recorded, so the figures collected next are
 /// whole; waiting for exactly those requests, instead of a fixed time, keeps the host from
 /// idling after the last node has asked (a fixed 300 ms was most of a small render's
-/// overhead). A node that never asks (its rendering thread failed) is waited for 300 ms.
+/// overhead). A node the machine's load started late may ask only now, after the image is
+/// complete (its figures are then whole too); one that never asks (its rendering thread
+/// hung) is waited for 2 s.
 async fn drain_requests(cluster: &mut Cluster, f: &fabric::Fabric, mut owed: HashSet<NodeId>) {
-    let until = Instant::now() + Duration::from_millis(300);
+    let until = Instant::now() + Duration::from_secs(2);
     while !owed.is_empty() {
         let left = until.saturating_duration_since(Instant::now());
         if left.is_zero() {

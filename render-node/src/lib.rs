@@ -257,7 +257,7 @@ fn node_stats(
         // Time spent waiting for data is inside the rendering time; it is told apart.
         busy_s: render.saturating_sub(wait) as f64 * 1e-9,
         waiting_s: wait as f64 * 1e-9,
-        idle_s: g(&w.idle_ns) as f64 * 1e-9,
+        idle_s: w.idle.total().as_secs_f64(),
         peak_rss_bytes: fabric::peak_rss_bytes(),
         peak_private_bytes: g(&w.peak_private).max(fabric::private_rss_bytes()),
         chunks_in_place: cache.map_or(0, |c| g(&c.stats.in_place)),
@@ -347,11 +347,26 @@ mod tests {
     }
 
     #[test]
+    fn node_stats_counts_a_wait_for_work_still_going_on() {
+        let work = WorkStats::default();
+        let began = work.idle.begin();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let open = node_stats(4, CounterSnapshot::default(), &work, None).idle_s;
+        assert!(open >= 0.02, "{open}");
+        work.idle.end(began);
+        let ended = node_stats(4, CounterSnapshot::default(), &work, None).idle_s;
+        assert!(ended >= open, "{ended} < {open}");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        let later = node_stats(4, CounterSnapshot::default(), &work, None).idle_s;
+        assert_eq!(later, ended, "an ended wait no longer grows");
+    }
+
+    #[test]
     fn node_stats_counts_waiting_for_data_apart_from_rendering() {
         let work = WorkStats {
             rows: AtomicU64::new(12),
             render_ns: AtomicU64::new(3_000_000_000),
-            idle_ns: AtomicU64::new(500_000_000),
+            idle: worker::IdleClock::with_ended(std::time::Duration::from_millis(500)),
             ..WorkStats::default()
         };
         let scene = demo();

@@ -128,10 +128,58 @@ pub struct WorkStats {
     pub paths_deferred: AtomicU64,
     pub deferred_fetches: AtomicU64,
     pub render_ns: AtomicU64,
-    pub idle_ns: AtomicU64,
+    pub idle: IdleClock,
     /// What each subscreen cost, for the host's per-subscreen records (one push per
     /// subscreen, never per pixel).
     pub records: Mutex<Vec<SubscreenWork>>,
+}
+
+/// Time the rendering threads spent waiting for work, with the waits still going on: the
+/// host asks for figures as soon as the last request has come in, and a node held without
+/// work all render may read its answer only after it has sent them.
+#[derive(Default)]
+pub struct IdleClock {
+    inner: Mutex<Waits>,
+}
+
+#[derive(Default)]
+struct Waits {
+    ended: Duration,
+    open: Vec<Instant>,
+}
+
+impl IdleClock {
+    /// A wait begins now; hand what this returns to [`IdleClock::end`].
+    pub fn begin(&self) -> Instant {
+        let now = Instant::now();
+        self.inner.lock().expect("idle lock").open.push(now);
+        now
+    }
+
+    pub fn end(&self, began: Instant) {
+        let mut w = self.inner.lock().expect("idle lock");
+        if let Some(i) = w.open.iter().position(|&t| t == began) {
+            w.open.swap_remove(i);
+        }
+        w.ended += began.elapsed();
+    }
+
+    /// Waits ended, and those still open up to now.
+    pub fn total(&self) -> Duration {
+        let w = self.inner.lock().expect("idle lock");
+        let now = Instant::now();
+        w.ended + w.open.iter().map(|&t| now - t).sum::<Duration>()
+    }
+
+    #[cfg(test)]
+    pub fn with_ended(ended: Duration) -> Self {
+        IdleClock {
+            inner: Mutex::new(Waits {
+                ended,
+                open: Vec::new(),
+            }),
+        }
+    }
 }
 
 pub type ActiveMap = Arc<Mutex<HashMap<u32, Arc<Active>>>>;
@@ -170,15 +218,13 @@ impl Worker {
         let mut finished = None;
         let mut ahead = None;
         loop {
-            let t0 = Instant::now();
+            let t0 = self.stats.idle.begin();
             // The answer to the request sent ahead, unless there was none or it had nothing.
             let next = match ahead.take().map(|asked| self.answer(asked)).transpose()? {
                 Some(Next::NothingAhead) | None => self.answer(self.ask(finished.take(), false))?,
                 Some(next) => next,
             };
-            self.stats
-                .idle_ns
-                .fetch_add(t0.elapsed().as_nanos() as u64, Ordering::Relaxed);
+            self.stats.idle.end(t0);
             let (id, active) = match next {
                 Next::Subscreen(id, active) => (id, active),
                 Next::Done => break,
