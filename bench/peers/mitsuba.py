@@ -26,7 +26,8 @@ What it does:
      Integrator `path` with Mitsuba's defaults (max_depth -1, i.e. unbounded, Russian roulette
      from depth 5), `independent` sampler, `box` pixel filter, linear RGB `hdrfilm`.
   2. For each renderer and sample count (`--spp`), renders the scene once (`--repeat N`: N
-     times, median times) and measures
+     times, median times; the renderers take turns, one run each a round, so that load from
+     elsewhere falls on all of them alike) and measures
        - wall time: the whole command a user waits for. Mitsuba: a fresh Python process that
          imports mitsuba, sets the variant, converts and loads the scene, renders and writes
          the EXR (one untimed warm-up per variant first, so the LLVM kernel cache is warm;
@@ -561,6 +562,10 @@ def run_mitsuba(args, variant: str, spp: int, out_image: Path, width: int, heigh
     return {"wall_s": wall, "render_s": info["render_s"], "cpu_s": cpu, "detail": info}
 
 
+def image_tag(renderer: str, variant: str) -> str:
+    return "magg" if renderer == "magg" else f"mitsuba-{variant}"
+
+
 def magg_command(args, spp: int, out_image: Path, stats: Path, width: int, height: int) -> list[str]:
     cmd = [str(args.magg), "render", str(args.scene), "-o", str(out_image),
            "--width", str(width), "--height", str(height), "--spp", str(spp),
@@ -845,30 +850,37 @@ def main() -> None:
 
     rows = []
     for spp in args.spp_list:
-        for renderer, variant in renderers:
-            tag = "magg" if renderer == "magg" else f"mitsuba-{variant}"
-            out_image = images / f"{tag}-{spp}spp.exr"
-            runs = []
-            for _ in range(args.repeat):
+        # Runs of the renderers take turns (round by round), so that a spell of load from
+        # elsewhere on this shared machine falls on each of them alike: the ratios compare
+        # runs made under the same conditions, not one renderer's quiet minutes with
+        # another's busy ones.
+        runs = {key: [] for key in renderers}
+        for _ in range(args.repeat):
+            for renderer, variant in renderers:
+                out_image = images / f"{image_tag(renderer, variant)}-{spp}spp.exr"
                 if renderer == "magg":
-                    runs.append(run_magg(args, spp, out_image, width, height))
+                    run = run_magg(args, spp, out_image, width, height)
                 else:
-                    runs.append(run_mitsuba(args, variant, spp, out_image, width, height))
+                    run = run_mitsuba(args, variant, spp, out_image, width, height)
+                runs[(renderer, variant)].append(run)
+        for renderer, variant in renderers:
+            out_image = images / f"{image_tag(renderer, variant)}-{spp}spp.exr"
+            rs = runs[(renderer, variant)]
             # Same seed each repeat: the image (so relMSE) is the same; only times vary.
             err = rel_mse(read_image(out_image), reference)
             row = {
                 "renderer": renderer, "variant": variant, "spp": spp,
-                "wall_s": statistics.median(r["wall_s"] for r in runs),
-                "render_s": statistics.median(r["render_s"] for r in runs),
-                "cpu_s": statistics.median(r["cpu_s"] for r in runs),
+                "wall_s": statistics.median(r["wall_s"] for r in rs),
+                "render_s": statistics.median(r["render_s"] for r in rs),
+                "cpu_s": statistics.median(r["cpu_s"] for r in rs),
                 "rel_mse": err, "image": str(out_image),
-                "wall_s_runs": [r["wall_s"] for r in runs],
-                "render_s_runs": [r["render_s"] for r in runs],
-                "cpu_s_runs": [r["cpu_s"] for r in runs],
-                "detail": runs[-1]["detail"],
+                "wall_s_runs": [r["wall_s"] for r in rs],
+                "render_s_runs": [r["render_s"] for r in rs],
+                "cpu_s_runs": [r["cpu_s"] for r in rs],
+                "detail": rs[-1]["detail"],
             }
-            if "command" in runs[-1]:
-                row["command"] = runs[-1]["command"]
+            if "command" in rs[-1]:
+                row["command"] = rs[-1]["command"]
             rows.append(row)
             log(f"{renderer:7s} {variant:12s} {spp:5d} spp: wall {row['wall_s']:7.2f} s, "
                 f"render {row['render_s']:7.2f} s, CPU {row['cpu_s']:7.2f} s, relMSE {err:.3e}")
