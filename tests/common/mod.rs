@@ -103,6 +103,8 @@ pub fn in_process_to<S: AsRef<std::ffi::OsStr>>(out: &Path, args: &[S]) -> PathB
 pub struct Logged {
     pub child: Child,
     lines: Arc<Mutex<Vec<String>>>,
+    /// Set once the whole of stderr has been read (the pipe closed).
+    read_all: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl Logged {
@@ -114,13 +116,20 @@ impl Logged {
             .expect("start process");
         let lines = Arc::new(Mutex::new(Vec::new()));
         let sink = lines.clone();
+        let read_all = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let done = read_all.clone();
         let err = child.stderr.take().unwrap();
         std::thread::spawn(move || {
             for line in BufReader::new(err).lines().map_while(Result::ok) {
                 sink.lock().unwrap().push(line);
             }
+            done.store(true, std::sync::atomic::Ordering::Release);
         });
-        Logged { child, lines }
+        Logged {
+            child,
+            lines,
+            read_all,
+        }
     }
 
     pub fn pid(&self) -> u32 {
@@ -156,12 +165,25 @@ impl Logged {
         let deadline = Instant::now() + limit;
         loop {
             if let Some(s) = self.child.try_wait().unwrap() {
+                self.wait_for_log_end(Duration::from_secs(5));
                 return Some(s.code());
             }
             if Instant::now() > deadline {
                 return None;
             }
             std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Waits until the reader has taken in everything the process wrote before it ended
+    /// (clean-clone CI read a log that lacked the host's last lines, its error, right after
+    /// the host had exited), or until `limit`: a child the process started may still hold
+    /// the pipe open.
+    fn wait_for_log_end(&self, limit: Duration) {
+        let deadline = Instant::now() + limit;
+        while !self.read_all.load(std::sync::atomic::Ordering::Acquire) && Instant::now() < deadline
+        {
+            std::thread::sleep(Duration::from_millis(5));
         }
     }
 
