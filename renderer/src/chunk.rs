@@ -303,6 +303,7 @@ impl Chunk {
         self.byte_len() + self.accel.byte_len()
     }
 
+    #[inline(always)]
     pub fn header(&self) -> &ChunkHeader {
         bytemuck::from_bytes(bytemuck::cast_slice(&self.words[..HEADER_WORDS]))
     }
@@ -311,14 +312,17 @@ impl Chunk {
         bytemuck::cast_slice(&self.words[self.layout.nodes..self.layout.positions])
     }
 
+    #[inline(always)]
     pub fn tri_positions(&self) -> &[[f32; 9]] {
         bytemuck::cast_slice(&self.words[self.layout.positions..self.layout.vertices])
     }
 
+    #[inline(always)]
     pub fn tri_vertices(&self) -> &[[u32; 3]] {
         bytemuck::cast_slice(&self.words[self.layout.vertices..self.layout.normals])
     }
 
+    #[inline(always)]
     fn section<T: Pod>(&self, start: usize, end: usize) -> &[T] {
         bytemuck::cast_slice(&self.words[start..end])
     }
