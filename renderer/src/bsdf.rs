@@ -493,7 +493,11 @@ impl Bsdf {
         self.base + (Vec3::ONE - self.base) * schlick_weight(cos)
     }
 
-    /// f(wo, wi) of the non-delta lobes (world directions, unit).
+    /// f(wo, wi) of the non-delta lobes (world directions, unit). The Lambertian case is
+    /// inlined where it is called and the layered one kept out of line, as in
+    /// [`Bsdf::sample`] and [`Bsdf::pdf`]: whole, the three were calls on every hit, even of
+    /// the commonest surface, whose terms are a few instructions.
+    #[inline]
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         if self.lambert {
             return if self.reflects_diffusely(wo, wi).is_some() {
@@ -502,6 +506,11 @@ impl Bsdf {
                 Vec3::ZERO
             };
         }
+        self.eval_layered(wo, wi)
+    }
+
+    /// [`Bsdf::eval`] of a BSDF with more than a diffuse base.
+    fn eval_layered(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let lo = self.frame.to_local(wo);
         let li = self.frame.to_local(wi);
         if lo.z <= 0.0 {
@@ -611,6 +620,7 @@ impl Bsdf {
     }
 
     /// Draws an incident direction. `u_lobe` picks the lobe, `u` drives it.
+    #[inline]
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: (f32, f32)) -> Option<BsdfSample> {
         if self.lambert {
             let wi = self.frame.to_world(cosine_hemisphere(u));
@@ -628,6 +638,11 @@ impl Bsdf {
                 transmitted: false,
             });
         }
+        self.sample_layered(wo, u_lobe, u)
+    }
+
+    /// [`Bsdf::sample`] of a BSDF with more than a diffuse base.
+    fn sample_layered(&self, wo: Vec3, u_lobe: f32, u: (f32, f32)) -> Option<BsdfSample> {
         let lo = self.frame.to_local(wo);
         if lo.z <= 0.0 {
             return None;
@@ -800,10 +815,16 @@ impl Bsdf {
 
     /// Density of sampling `wi` by any lobe, including the reflecting half of a rough
     /// refracting interface (drawn by the transmission lobe); pairs with [`Bsdf::eval`].
+    #[inline]
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         if self.lambert {
             return self.reflects_diffusely(wo, wi).map_or(0.0, |c| c * INV_PI);
         }
+        self.pdf_layered(wo, wi)
+    }
+
+    /// [`Bsdf::pdf`] of a BSDF with more than a diffuse base.
+    fn pdf_layered(&self, wo: Vec3, wi: Vec3) -> f32 {
         let mut pdf = self.pdf_lobes(wo, wi);
         if self.volume && !self.is_delta_lobe() && self.p_transmit > 0.0 {
             let lo = self.frame.to_local(wo);
