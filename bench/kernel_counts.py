@@ -3,7 +3,7 @@
 where wall times of one build against another cannot be told apart below 10%.
 
     python3 bench/kernel_counts.py [--host target/release/magg-host] [--out DIR]
-        [--mesh GLB --rays-dir DIR] [--skip-rays] [--skip-cornell]
+        [--mesh GLB --rays-dir DIR] [--skip-rays] [--skip-cornell] [--skip-embree]
 
 Two measurements, each printed as a markdown table:
 
@@ -13,6 +13,13 @@ Two measurements, each printed as a markdown table:
    once timed in one process, the same through a render node's cache. The count a query is
    (instructions of the run - instructions of the same run with one ray) / (4 x rays), so
    loading and building cancel out; it is the mean of the two data paths.
+   The same rays are counted through Intel Embree too, when `bench/peers/embree.py` has made
+   its virtual environment (`bench/peers/.venv-embree`): `rtcIntersect1` / `rtcOccluded1` on
+   the same landscape, the instructions of the Embree library alone (its build cancels out
+   the same way), in the AVX2 code it picks under valgrind, which cannot run AVX-512: the
+   same instruction set as magg's build. The binding's own loop over the rays (Cython, about
+   60 instructions a ray) is left out of Embree's count; magg's count holds its bench loop
+   (about 20).
 2. The Cornell box (`tests/data/scenes/cornell`), 64x64 at 16 spp on one thread, in one
    process: the instructions of a closest-hit and of a shadow query (the inclusive count of
    `Tracer::closest` and `Tracer::occluded` over their calls), once as the file is (one chunk
@@ -37,10 +44,12 @@ import tempfile
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def callgrind(cmd, out_file=None):
-    """Runs `cmd` under callgrind; its total instruction count."""
+def callgrind(cmd, out_file=None, prefix=()):
+    """Runs `cmd` under callgrind (itself run by `prefix`, e.g. taskset); its total instruction
+    count."""
     target = out_file or os.devnull
-    run = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={target}", *cmd],
+    run = subprocess.run([*prefix, "valgrind", "--tool=callgrind",
+                          f"--callgrind-out-file={target}", *cmd],
                          capture_output=True, text=True)
     if run.returncode != 0:
         sys.exit(f"failed ({run.returncode}): {' '.join(cmd)}\n{run.stderr[-2000:]}")
@@ -99,6 +108,47 @@ def ray_sets(args):
     return mesh, sets
 
 
+EMBREE_PYTHON = os.path.join(ROOT, "bench", "peers", ".venv-embree", "bin", "python")
+
+# Run by the Embree environment's Python under callgrind: builds the scene as embree.py does
+# (the first query commits it), then casts RAYS[:N] once with the query QUERY.
+EMBREE_CAST = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import embree
+embree.np = np
+verts, tris = embree.check_glb(sys.argv[2])
+o, d = embree.read_rays(sys.argv[3])
+n = int(sys.argv[4])
+scene, _, _ = embree.build_scene(np.ascontiguousarray(verts), tris, False)
+scene.run(np.ascontiguousarray(o[:n]), np.ascontiguousarray(d[:n]),
+          dists=np.full(n, np.inf, np.float32), query=sys.argv[5])
+"""
+
+
+def embree_library_instructions(script, mesh, rays, n, query, tmp):
+    """Instructions executed inside the Embree library while casting rays[:n] (the whole
+    run: loading, building, casting)."""
+    profile = os.path.join(tmp, "embree.callgrind")
+    # One CPU, as embree.py runs it: TBB then starts no worker threads, whose work-stealing
+    # would make the build's count differ from run to run.
+    pin = ["taskset", "-c", "0"] if shutil.which("taskset") else []
+    callgrind([EMBREE_PYTHON, script, os.path.join(ROOT, "bench", "peers"), mesh, rays, str(n),
+               query], profile, prefix=pin)
+    text = subprocess.run(["callgrind_annotate", "--threshold=100", profile],
+                          capture_output=True, text=True, check=True,
+                          cwd=os.path.dirname(os.path.abspath(profile))).stdout
+    total = 0
+    for line in text.splitlines():
+        m = re.match(r"\s*([\d,]+) \(", line)
+        if m and "libembree4" in line:
+            total += int(m.group(1).replace(",", ""))
+    if not total:
+        sys.exit("callgrind_annotate named no function of the Embree library")
+    return total
+
+
 def measure_rays(args, tmp):
     mesh, sets = ray_sets(args)
     one = os.path.join(tmp, "one-ray.bin")
@@ -108,18 +158,42 @@ def measure_rays(args, tmp):
     def bench(rays, extra=()):
         return callgrind([args.host, "bench", "rays", mesh, rays, "--repeat", "1", *extra])
 
+    embree = None
+    if not args.skip_embree and os.path.exists(EMBREE_PYTHON):
+        embree = os.path.join(tmp, "embree_cast.py")
+        with open(embree, "w") as f:
+            f.write(EMBREE_CAST)
+    elif not args.skip_embree:
+        print(f"(no {EMBREE_PYTHON}: run python3 bench/peers/embree.py --quick to count Embree "
+              "too)\n")
+
+    def embree_query(path, n, query):
+        if embree is None:
+            return None
+        base = embree_library_instructions(embree, mesh, path, 1, query, tmp)
+        total = embree_library_instructions(embree, mesh, path, n, query, tmp)
+        return (total - base) / (n - 1)
+
     print(f"Ray queries on {os.path.basename(mesh)} (callgrind, `bench rays --repeat 1`)\n")
-    print("| set | rays | instructions a query |")
-    print("|---|---:|---:|")
+    print("| set | rays | instructions a query | Embree (AVX2) | magg / Embree |")
+    print("|---|---:|---:|---:|---:|")
     base = bench(one)
     any_base = bench(one, ["--any-hit"])
+
+    def row(label, n, magg, theirs):
+        if theirs is None:
+            print(f"| {label} | {n:,} | {magg:,.0f} | | |")
+        else:
+            print(f"| {label} | {n:,} | {magg:,.0f} | {theirs:,.0f} | {magg / theirs:.2f} |")
+
     for name, path in sets.items():
         n = os.path.getsize(path) // 24
         total = bench(path)
-        print(f"| {name} | {n:,} | {(total - base) / (4 * n):,.0f} |")
+        row(name, n, (total - base) / (4 * n), embree_query(path, n, "DISTANCE"))
         if name == "random":
             total = bench(path, ["--any-hit"])
-            print(f"| random, any hit | {n:,} | {(total - any_base) / (4 * n):,.0f} |")
+            row("random, any hit", n, (total - any_base) / (4 * n),
+                embree_query(path, n, "OCCLUDED"))
     print(f"\nThe whole command with one ray (loading and building): {base:,} instructions.\n")
 
 
@@ -224,6 +298,8 @@ def main():
     ap.add_argument("--rays-dir", default=os.path.join(ROOT, "bench", "peers", "out"))
     ap.add_argument("--skip-rays", action="store_true")
     ap.add_argument("--skip-cornell", action="store_true")
+    ap.add_argument("--skip-embree", action="store_true",
+                    help="count magg's queries only, even where Embree's environment exists")
     args = ap.parse_args()
     for tool in ("valgrind", "callgrind_annotate"):
         if shutil.which(tool) is None:
