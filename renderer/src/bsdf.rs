@@ -495,8 +495,8 @@ impl Bsdf {
 
     /// f(wo, wi) of the non-delta lobes (world directions, unit). The Lambertian case is
     /// inlined where it is called and the layered one kept out of line, as in
-    /// [`Bsdf::sample`] and [`Bsdf::pdf`]: whole, the three were calls on every hit, even of
-    /// the commonest surface, whose terms are a few instructions.
+    /// [`Bsdf::sample`] and [`Bsdf::pdf`]: whole, each of the three was a call on every hit,
+    /// even on the commonest surface, whose terms take a few instructions.
     #[inline]
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         if self.lambert {

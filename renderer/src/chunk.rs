@@ -303,6 +303,8 @@ impl Chunk {
         self.byte_len() + self.accel.byte_len()
     }
 
+    // The accessors below are read on every hit; out of line, each call redid bytemuck's
+    // length and alignment checks behind a call (1.1% of a Cornell box sample).
     #[inline(always)]
     pub fn header(&self) -> &ChunkHeader {
         bytemuck::from_bytes(bytemuck::cast_slice(&self.words[..HEADER_WORDS]))
