@@ -19,7 +19,7 @@ use crate::{
     math::{offset_ray_origin, power_heuristic},
     ray::Ray,
     render::RenderSettings,
-    sampler::{PIXEL_DIM, SampleKey, Sampler},
+    sampler::{Draws, PIXEL_DIM, SampleKey, Sampler},
     source::{DataError, SceneData},
     trace::{AlphaKey, Tracer, shadow_ray},
 };
@@ -221,7 +221,7 @@ pub struct PathState {
 
 impl PathState {
     /// A path about to follow its camera ray, for the sample `sampler` draws.
-    pub fn new(ray: Ray, sampler: &Sampler<'_>) -> PathState {
+    pub fn new(ray: Ray, sampler: &impl Draws) -> PathState {
         PathState {
             ray,
             l: Vec3::ZERO,
@@ -247,7 +247,7 @@ impl PathState {
     pub fn step<D: SceneData>(
         &mut self,
         t: &Tracer<D>,
-        sampler: &mut Sampler<'_>,
+        sampler: &mut impl Draws,
         max_depth: u32,
         clamp: f32,
     ) -> Result<bool, DataError> {
@@ -263,7 +263,7 @@ impl PathState {
     fn bounce_once<D: SceneData>(
         &mut self,
         t: &Tracer<D>,
-        sampler: &mut Sampler<'_>,
+        sampler: &mut impl Draws,
         clamp: f32,
     ) -> Result<bool, DataError> {
         let scene = t.scene;

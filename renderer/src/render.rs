@@ -11,10 +11,10 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    camera::Camera,
-    integrator::{self, IntegratorKind, WhittedLimits},
+    camera::{Camera, CameraRays},
+    integrator::{self, IntegratorKind, PathState, WhittedLimits},
     math::luminance,
-    sampler::PixelSeeds,
+    sampler::{PixelSeeds, SampleWave, WAVE_LANES},
     scene::SceneHeader,
     source::{DataError, Deferral, Item, SceneData, Touched},
     trace::{QueryMemo, TraceStats, Tracer},
@@ -178,6 +178,20 @@ pub fn render_pixel<D: SceneData>(
     let mut sum = PixelSum::default();
     let rays = camera.rays(settings.width, settings.height);
     let seeds = PixelSeeds::new(settings.seed, x, y);
+    if settings.integrator == IntegratorKind::Path {
+        let mut first = 0;
+        while first < settings.spp {
+            let lanes = (settings.spp - first).min(WAVE_LANES) as usize;
+            let radiance = path_wave(tracer, settings, &rays, &seeds, (x, y), first, lanes)?;
+            for l in &radiance[..lanes] {
+                if sum.add(*l, settings, stats) {
+                    return Ok(sum.finish(stats));
+                }
+            }
+            first += lanes as u32;
+        }
+        return Ok(sum.finish(stats));
+    }
     for n in 0..settings.spp {
         let mut s = seeds.sampler(n);
         let (du, dv) = s.pixel_2d();
@@ -189,6 +203,61 @@ pub fn render_pixel<D: SceneData>(
         }
     }
     Ok(sum.finish(stats))
+}
+
+/// The path tracer's radiance for samples `first..first + lanes` of pixel `(x, y)`, their
+/// paths taking each bounce together so that the wave draws their numbers at once (the
+/// same numbers and operations as one sample at a time, so the same bits). Adaptive
+/// sampling stops a pixel only after a multiple of [`ADAPTIVE_BATCH`] samples, a multiple of
+/// a wave, so no sample is traced that one at a time would not have traced.
+#[inline(always)]
+fn path_wave<D: SceneData>(
+    tracer: &Tracer<D>,
+    settings: &RenderSettings,
+    rays: &CameraRays<'_>,
+    seeds: &PixelSeeds,
+    (x, y): (u32, u32),
+    first: u32,
+    lanes: usize,
+) -> Result<[Vec3; WAVE_LANES as usize], DataError> {
+    let mut wave = SampleWave::new(seeds, first);
+    let pixel = wave.pixel_2d();
+    let mut paths = [None; WAVE_LANES as usize];
+    for (lane, path) in paths.iter_mut().enumerate().take(lanes) {
+        let (du, dv) = pixel[lane];
+        let ray = rays.ray(x as f32 + du, y as f32 + dv);
+        tracer.count_camera_ray();
+        *path = Some(PathState::new(ray, &wave.lane(lane)));
+    }
+    let mut radiance = [Vec3::ZERO; WAVE_LANES as usize];
+    let mut bounce = 0;
+    let mut live = lanes;
+    while live > 0 {
+        // Eight lanes are drawn for at the cost of about one drawn alone.
+        if live > 1 {
+            wave.draw_bounce(bounce);
+        } else {
+            wave.release();
+        }
+        live = 0;
+        for (lane, slot) in paths.iter_mut().enumerate() {
+            let Some(path) = slot else { continue };
+            let more = path.step(
+                tracer,
+                &mut wave.lane(lane),
+                settings.max_depth,
+                settings.clamp_indirect,
+            )?;
+            if more {
+                live += 1;
+            } else {
+                radiance[lane] = path.radiance();
+                *slot = None;
+            }
+        }
+        bounce += 1;
+    }
+    Ok(radiance)
 }
 
 /// What memory-coherent rendering did: how often a path was put aside for data, and how

@@ -1,4 +1,5 @@
-//! Small SIMD types for the ray-casting kernel: eight and four `f32` lanes and their masks.
+//! Small SIMD types: eight and four `f32` lanes and their masks for the ray-casting kernel,
+//! eight `u32` lanes for the sampler's hashes.
 //!
 //! With AVX2 and FMA (the default build, x86-64-v3) each operation is one instruction; on
 //! other targets the same operations run lane by lane. Both give the same bits: `min`/`max`
@@ -178,6 +179,111 @@ mod imp {
             unsafe { M4(_mm_xor_ps(self.0, _mm_castsi128_ps(_mm_set1_epi32(-1)))) }
         }
     }
+
+    /// Eight `u32` lanes, with wrapping arithmetic.
+    #[derive(Clone, Copy, Debug)]
+    #[repr(transparent)]
+    pub struct U32x8(__m256i);
+
+    /// Within each byte, the reversed low nibble moved to the high one, by nibble value.
+    const NIBBLE_REVERSED_HIGH: [u8; 32] = {
+        let mut t = [0u8; 32];
+        let mut i = 0;
+        while i < 32 {
+            t[i] = ((i as u8 & 15).reverse_bits() >> 4) << 4;
+            i += 1;
+        }
+        t
+    };
+    /// The reversed nibble, by nibble value.
+    const NIBBLE_REVERSED: [u8; 32] = {
+        let mut t = [0u8; 32];
+        let mut i = 0;
+        while i < 32 {
+            t[i] = (i as u8 & 15).reverse_bits() >> 4;
+            i += 1;
+        }
+        t
+    };
+    /// Byte order within each 32-bit lane reversed.
+    const BYTES_REVERSED: [u8; 32] = {
+        let mut t = [0u8; 32];
+        let mut i = 0;
+        while i < 32 {
+            t[i] = (i as u8 & !3) + 3 - (i as u8 & 3) - (i as u8 & 16);
+            i += 1;
+        }
+        t
+    };
+
+    impl U32x8 {
+        #[inline(always)]
+        pub fn load(a: &[u32; 8]) -> U32x8 {
+            unsafe { U32x8(_mm256_loadu_si256(a.as_ptr().cast())) }
+        }
+        #[inline(always)]
+        pub fn splat(x: u32) -> U32x8 {
+            unsafe { U32x8(_mm256_set1_epi32(x as i32)) }
+        }
+        #[inline(always)]
+        pub fn store(self, out: &mut [u32; 8]) {
+            unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), self.0) }
+        }
+        #[inline(always)]
+        pub fn wrapping_add(self, b: U32x8) -> U32x8 {
+            unsafe { U32x8(_mm256_add_epi32(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn wrapping_mul(self, b: U32x8) -> U32x8 {
+            unsafe { U32x8(_mm256_mullo_epi32(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn xor(self, b: U32x8) -> U32x8 {
+            unsafe { U32x8(_mm256_xor_si256(self.0, b.0)) }
+        }
+        /// Each lane shifted right by `N` bits.
+        #[inline(always)]
+        pub fn shr<const N: i32>(self) -> U32x8 {
+            unsafe { U32x8(_mm256_srli_epi32::<N>(self.0)) }
+        }
+        /// Each lane's bits in reverse order: its bytes reversed with one shuffle, then each
+        /// byte's two nibbles reversed and swapped by two table shuffles.
+        #[inline(always)]
+        pub fn reverse_bits(self) -> U32x8 {
+            unsafe {
+                let load = |t: &[u8; 32]| _mm256_loadu_si256(t.as_ptr().cast());
+                let x = _mm256_shuffle_epi8(self.0, load(&BYTES_REVERSED));
+                let nibble = _mm256_set1_epi8(15);
+                let low = _mm256_and_si256(x, nibble);
+                let high = _mm256_and_si256(_mm256_srli_epi16::<4>(x), nibble);
+                U32x8(_mm256_or_si256(
+                    _mm256_shuffle_epi8(load(&NIBBLE_REVERSED_HIGH), low),
+                    _mm256_shuffle_epi8(load(&NIBBLE_REVERSED), high),
+                ))
+            }
+        }
+        /// `table[lane & 255]` for each lane.
+        #[inline(always)]
+        pub fn lookup(self, table: &[u32; 256]) -> U32x8 {
+            unsafe {
+                let i = _mm256_and_si256(self.0, _mm256_set1_epi32(255));
+                U32x8(_mm256_i32gather_epi32::<4>(table.as_ptr().cast(), i))
+            }
+        }
+        /// The top 24 bits of each lane as a fraction in [0, 1): `(x >> 8) as f32 * 2^-24`.
+        #[inline(always)]
+        pub fn unit(self) -> [f32; 8] {
+            let mut out = [0.0; 8];
+            unsafe {
+                let f = _mm256_cvtepi32_ps(_mm256_srli_epi32::<8>(self.0));
+                _mm256_storeu_ps(
+                    out.as_mut_ptr(),
+                    _mm256_mul_ps(f, _mm256_set1_ps(1.0 / (1u32 << 24) as f32)),
+                );
+            }
+            out
+        }
+    }
 }
 
 #[cfg(not(all(
@@ -340,6 +446,102 @@ mod imp {
             M4(!self.0 & 0xf)
         }
     }
+
+    /// Eight `u32` lanes, with wrapping arithmetic.
+    #[derive(Clone, Copy, Debug)]
+    pub struct U32x8([u32; 8]);
+
+    impl U32x8 {
+        #[inline(always)]
+        pub fn load(a: &[u32; 8]) -> U32x8 {
+            U32x8(*a)
+        }
+        #[inline(always)]
+        pub fn splat(x: u32) -> U32x8 {
+            U32x8([x; 8])
+        }
+        #[inline(always)]
+        pub fn store(self, out: &mut [u32; 8]) {
+            *out = self.0;
+        }
+        #[inline(always)]
+        pub fn wrapping_add(self, b: U32x8) -> U32x8 {
+            U32x8(std::array::from_fn(|i| self.0[i].wrapping_add(b.0[i])))
+        }
+        #[inline(always)]
+        pub fn wrapping_mul(self, b: U32x8) -> U32x8 {
+            U32x8(std::array::from_fn(|i| self.0[i].wrapping_mul(b.0[i])))
+        }
+        #[inline(always)]
+        pub fn xor(self, b: U32x8) -> U32x8 {
+            U32x8(std::array::from_fn(|i| self.0[i] ^ b.0[i]))
+        }
+        #[inline(always)]
+        pub fn shr<const N: i32>(self) -> U32x8 {
+            U32x8(self.0.map(|x| x >> N))
+        }
+        #[inline(always)]
+        pub fn reverse_bits(self) -> U32x8 {
+            U32x8(self.0.map(u32::reverse_bits))
+        }
+        #[inline(always)]
+        pub fn lookup(self, table: &[u32; 256]) -> U32x8 {
+            U32x8(self.0.map(|x| table[(x & 255) as usize]))
+        }
+        #[inline(always)]
+        pub fn unit(self) -> [f32; 8] {
+            self.0
+                .map(|x| (x >> 8) as f32 * (1.0 / (1u32 << 24) as f32))
+        }
+    }
 }
 
-pub use imp::{F32x4, F32x8, M4, M8};
+pub use imp::{F32x4, F32x8, M4, M8, U32x8};
+
+#[cfg(test)]
+mod tests {
+    use super::U32x8;
+
+    /// The integer lanes give what `u32`'s own operations give, lane by lane.
+    #[test]
+    fn u32_lanes_agree_with_scalar_operations() {
+        let a = [
+            0,
+            1,
+            0x8000_0000,
+            u32::MAX,
+            0x1234_5678,
+            0xdead_beef,
+            255,
+            0x00ff_ff00,
+        ];
+        let b = [
+            7,
+            u32::MAX,
+            3,
+            2,
+            0x9e37_79b9,
+            0x0101_0101,
+            0x8000_0001,
+            12345,
+        ];
+        let out = |x: U32x8| {
+            let mut o = [0; 8];
+            x.store(&mut o);
+            o
+        };
+        let (va, vb) = (U32x8::load(&a), U32x8::load(&b));
+        let table: [u32; 256] = std::array::from_fn(|i| (i as u32).wrapping_mul(0x0100_0193));
+        for i in 0..8 {
+            assert_eq!(out(va.wrapping_add(vb))[i], a[i].wrapping_add(b[i]));
+            assert_eq!(out(va.wrapping_mul(vb))[i], a[i].wrapping_mul(b[i]));
+            assert_eq!(out(va.xor(vb))[i], a[i] ^ b[i]);
+            assert_eq!(out(va.shr::<8>())[i], a[i] >> 8);
+            assert_eq!(out(va.reverse_bits())[i], a[i].reverse_bits());
+            assert_eq!(out(va.lookup(&table))[i], table[(a[i] & 255) as usize]);
+            let unit = (a[i] >> 8) as f32 * (1.0 / (1u32 << 24) as f32);
+            assert_eq!(va.unit()[i].to_bits(), unit.to_bits());
+        }
+        assert_eq!(out(U32x8::splat(9)), [9; 8]);
+    }
+}
