@@ -235,7 +235,7 @@ fn path_wave<D: SceneData>(
     while live > 0 {
         // Eight lanes are drawn for at the cost of about one drawn alone.
         if live > 1 {
-            wave.draw_bounce(bounce);
+            wave.want_bounce(bounce);
         } else {
             wave.release();
         }

@@ -429,6 +429,11 @@ pub struct SampleWave<'a> {
     /// bounce), which the next light draw continues, and its shuffled indices.
     after: u32,
     after_index: U32x8,
+    /// A bounce whose numbers are to be drawn when a lane first asks for one of them: a
+    /// path that leaves the scene asks for none.
+    wanted: Option<u32>,
+    /// The first dimension of the wanted bounce.
+    wanted_base: u32,
     /// Whether a bounce's numbers are held, and the first dimension of that bounce.
     held: bool,
     base: u32,
@@ -456,6 +461,8 @@ impl<'a> SampleWave<'a> {
             reversed_lanes,
             after: PIXEL_DIM,
             after_index: U32x8::splat(0),
+            wanted: None,
+            wanted_base: 0,
             held: false,
             base: 0,
             light_after: PIXEL_DIM,
@@ -503,10 +510,18 @@ impl<'a> SampleWave<'a> {
         std::array::from_fn(|i| (x[i], y[i]))
     }
 
-    /// Draws the numbers of bounce `bounce` for every lane. Called once per bounce, in
-    /// order, after [`SampleWave::pixel_2d`]: each light draw continues the direction draw
-    /// of the bounce before.
+    /// The numbers of bounce `bounce` are to be drawn for every lane, once a lane asks for
+    /// one of them. Called once per bounce, in order, after [`SampleWave::pixel_2d`]: each
+    /// light draw continues the direction draw of the bounce before, and a bounce that some
+    /// path goes on from was drawn (its path asked for its direction).
+    pub fn want_bounce(&mut self, bounce: u32) {
+        self.wanted = Some(bounce);
+        self.wanted_base = bounce_dim(bounce);
+    }
+
+    /// Draws the numbers of bounce `bounce` for every lane (see [`SampleWave::want_bounce`]).
     pub fn draw_bounce(&mut self, bounce: u32) {
+        self.wanted = None;
         let base = bounce_dim(bounce);
         if self.held && base == self.base {
             return;
@@ -534,20 +549,23 @@ impl<'a> SampleWave<'a> {
     /// Holds no numbers any more: each lane draws its own from here on.
     pub fn release(&mut self) {
         self.held = false;
+        self.wanted = None;
     }
 
     /// Lane `lane`'s numbers: sample `first + lane`.
-    pub fn lane(&self, lane: usize) -> WaveLane<'_, 'a> {
+    pub fn lane(&mut self, lane: usize) -> WaveLane<'_, 'a> {
+        let seeds: &'a PixelSeeds = self.seeds;
+        let sampler = Sampler {
+            pixel: seeds.pixel,
+            cache: &seeds.dims,
+            sample: self.first.wrapping_add(lane as u32),
+            sample_reversed: self.reversed_lanes[lane],
+            dim: 0,
+        };
         WaveLane {
             wave: self,
             lane,
-            sampler: Sampler {
-                pixel: self.seeds.pixel,
-                cache: &self.seeds.dims,
-                sample: self.first.wrapping_add(lane as u32),
-                sample_reversed: self.reversed_lanes[lane],
-                dim: 0,
-            },
+            sampler,
         }
     }
 }
@@ -555,17 +573,22 @@ impl<'a> SampleWave<'a> {
 /// One sample of a [`SampleWave`]: its numbers, taken from what the wave drew where they are
 /// there, drawn on their own otherwise; the same numbers either way.
 pub struct WaveLane<'w, 'a> {
-    wave: &'w SampleWave<'a>,
+    wave: &'w mut SampleWave<'a>,
     lane: usize,
     sampler: Sampler<'a>,
 }
 
 impl WaveLane<'_, '_> {
     /// Which of the held draws the next draw is: its offset from the held bounce's first
-    /// dimension, when the wave holds numbers.
+    /// dimension, when the wave holds numbers (drawn now, if they are wanted and not drawn).
     #[inline(always)]
-    fn held_offset(&self) -> Option<u32> {
-        let w = self.wave;
+    fn held_offset(&mut self) -> Option<u32> {
+        let w = &mut *self.wave;
+        if let Some(bounce) = w.wanted
+            && self.sampler.dim.wrapping_sub(w.wanted_base) < 4
+        {
+            w.draw_bounce(bounce);
+        }
         let k = self.sampler.dim.wrapping_sub(w.base);
         (w.held && k < 4).then_some(k)
     }
@@ -669,9 +692,14 @@ mod tests {
             }
             let mut first_dim = PIXEL_DIM;
             for bounce in 0..12 {
-                wave.draw_bounce(bounce);
-                // Drawn twice: the second call keeps what the first drew.
-                wave.draw_bounce(bounce);
+                if bounce % 2 == 0 {
+                    wave.draw_bounce(bounce);
+                    // Drawn twice: the second call keeps what the first drew.
+                    wave.draw_bounce(bounce);
+                } else {
+                    // Drawn when the first lane asks.
+                    wave.want_bounce(bounce);
+                }
                 for lane in 0..WAVE_LANES as usize {
                     let sample = first.wrapping_add(lane as u32);
                     let lobe = (lane + bounce as usize).is_multiple_of(3);
