@@ -124,6 +124,9 @@ struct PixelSum {
 
 /// Adaptive sampling looks at a pixel's error after every this many samples.
 const ADAPTIVE_BATCH: u32 = 8;
+// A pixel stops only at the end of a wave of samples (`path_wave`): none is traced that
+// samples taken one at a time would not have traced.
+const _: () = assert!(ADAPTIVE_BATCH.is_multiple_of(WAVE_LANES));
 
 impl PixelSum {
     /// Adds the next sample; true when adaptive sampling stops the pixel here.
