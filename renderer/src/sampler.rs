@@ -176,11 +176,17 @@ impl PixelSeeds {
     /// Sample `sample` of this pixel: the numbers of `Sampler::new(seed, px, py, sample)`.
     #[inline]
     pub fn sampler(&self, sample: u32) -> Sampler<'_> {
+        self.sampler_reversed(sample, reverse(sample))
+    }
+
+    /// [`PixelSeeds::sampler`] for a sample whose bit reversal is known.
+    #[inline(always)]
+    fn sampler_reversed(&self, sample: u32, sample_reversed: u32) -> Sampler<'_> {
         Sampler {
             pixel: self.pixel,
             cache: &self.dims,
             sample,
-            sample_reversed: reverse(sample),
+            sample_reversed,
             dim: 0,
         }
     }
@@ -203,6 +209,25 @@ fn dim_seeds(pixel: u64, dim: u32) -> DimSeeds {
     let h = mix64(pixel ^ (dim as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let h2 = mix64(h);
     [h as u32, (h >> 32) as u32, h2 as u32, 1]
+}
+
+/// The seeds of dimension `dim` of the pixel of hash `pixel`, from `cache` where they were
+/// kept (and kept there once worked out).
+#[inline(always)]
+fn kept_seeds(cache: &[std::cell::Cell<DimSeeds>], pixel: u64, dim: u32) -> DimSeeds {
+    match cache.get(dim as usize) {
+        Some(cell) => {
+            let cached = cell.get();
+            if cached[3] != 0 {
+                cached
+            } else {
+                let fresh = dim_seeds(pixel, dim);
+                cell.set(fresh);
+                fresh
+            }
+        }
+        None => dim_seeds(pixel, dim),
+    }
 }
 
 /// The numbers of one sample of one pixel.
@@ -279,19 +304,7 @@ impl Sampler<'_> {
     /// The seeds of dimension `dim`, from the pixel's kept ones where they are.
     #[inline(always)]
     fn seeds_of(&self, dim: u32) -> DimSeeds {
-        match self.cache.get(dim as usize) {
-            Some(cell) => {
-                let cached = cell.get();
-                if cached[3] != 0 {
-                    cached
-                } else {
-                    let fresh = dim_seeds(self.pixel, dim);
-                    cell.set(fresh);
-                    fresh
-                }
-            }
-            None => dim_seeds(self.pixel, dim),
-        }
+        kept_seeds(self.cache, self.pixel, dim)
     }
 
     /// The sample's index in this dimension's order: the Owen scrambling of its index.
@@ -422,18 +435,15 @@ pub const WAVE_LANES: u32 = 8;
 pub struct SampleWave<'a> {
     seeds: &'a PixelSeeds,
     first: u32,
-    /// Bit-reversed sample index of each lane, in a register and lane by lane.
-    reversed: U32x8,
-    reversed_lanes: [u32; 8],
+    /// Bit-reversed sample index of each lane.
+    reversed: [u32; 8],
     /// The dimension of the last direction draw (the pixel position's, before the first
     /// bounce), which the next light draw continues, and its shuffled indices.
     after: u32,
     after_index: U32x8,
-    /// A bounce whose numbers are to be drawn when a lane first asks for one of them: a
-    /// path that leaves the scene asks for none.
+    /// The first dimension of a bounce whose numbers are to be drawn when a lane first asks
+    /// for one of them: a path that leaves the scene asks for none.
     wanted: Option<u32>,
-    /// The first dimension of the wanted bounce.
-    wanted_base: u32,
     /// Whether a bounce's numbers are held, and the first dimension of that bounce.
     held: bool,
     base: u32,
@@ -451,18 +461,15 @@ impl<'a> SampleWave<'a> {
     /// sample are drawn for and never used).
     pub fn new(seeds: &'a PixelSeeds, first: u32) -> SampleWave<'a> {
         let index: [u32; 8] = std::array::from_fn(|i| first.wrapping_add(i as u32));
-        let reversed = U32x8::load(&index).reverse_bits();
-        let mut reversed_lanes = [0; 8];
-        reversed.store(&mut reversed_lanes);
+        let mut reversed = [0; 8];
+        U32x8::load(&index).reverse_bits().store(&mut reversed);
         SampleWave {
             seeds,
             first,
             reversed,
-            reversed_lanes,
             after: PIXEL_DIM,
             after_index: U32x8::splat(0),
             wanted: None,
-            wanted_base: 0,
             held: false,
             base: 0,
             light_after: PIXEL_DIM,
@@ -474,13 +481,13 @@ impl<'a> SampleWave<'a> {
 
     #[inline(always)]
     fn seeds_of(&self, dim: u32) -> DimSeeds {
-        self.seeds.sampler(self.first).seeds_of(dim)
+        kept_seeds(&self.seeds.dims, self.seeds.pixel, dim)
     }
 
     /// Each lane's index in dimension `dim`'s order ([`Sampler::shuffled`]).
     #[inline(always)]
     fn shuffled(&self, shuffle: u32) -> U32x8 {
-        laine_karras8(self.reversed, shuffle).reverse_bits()
+        laine_karras8(U32x8::load(&self.reversed), shuffle).reverse_bits()
     }
 
     /// [`Sampler::get_2d`] at `dim` in every lane, and the shuffled indices it used.
@@ -515,14 +522,17 @@ impl<'a> SampleWave<'a> {
     /// light draw continues the direction draw of the bounce before, and a bounce that some
     /// path goes on from was drawn (its path asked for its direction).
     pub fn want_bounce(&mut self, bounce: u32) {
-        self.wanted = Some(bounce);
-        self.wanted_base = bounce_dim(bounce);
+        self.wanted = Some(bounce_dim(bounce));
     }
 
     /// Draws the numbers of bounce `bounce` for every lane (see [`SampleWave::want_bounce`]).
     pub fn draw_bounce(&mut self, bounce: u32) {
+        self.draw_at(bounce_dim(bounce));
+    }
+
+    /// [`SampleWave::draw_bounce`] for the bounce whose first dimension is `base`.
+    fn draw_at(&mut self, base: u32) {
         self.wanted = None;
-        let base = bounce_dim(bounce);
         if self.held && base == self.base {
             return;
         }
@@ -555,13 +565,8 @@ impl<'a> SampleWave<'a> {
     /// Lane `lane`'s numbers: sample `first + lane`.
     pub fn lane(&mut self, lane: usize) -> WaveLane<'_, 'a> {
         let seeds: &'a PixelSeeds = self.seeds;
-        let sampler = Sampler {
-            pixel: seeds.pixel,
-            cache: &seeds.dims,
-            sample: self.first.wrapping_add(lane as u32),
-            sample_reversed: self.reversed_lanes[lane],
-            dim: 0,
-        };
+        let sampler =
+            seeds.sampler_reversed(self.first.wrapping_add(lane as u32), self.reversed[lane]);
         WaveLane {
             wave: self,
             lane,
@@ -584,10 +589,10 @@ impl WaveLane<'_, '_> {
     #[inline(always)]
     fn held_offset(&mut self) -> Option<u32> {
         let w = &mut *self.wave;
-        if let Some(bounce) = w.wanted
-            && self.sampler.dim.wrapping_sub(w.wanted_base) < 4
+        if let Some(base) = w.wanted
+            && self.sampler.dim.wrapping_sub(base) < 4
         {
-            w.draw_bounce(bounce);
+            w.draw_at(base);
         }
         let k = self.sampler.dim.wrapping_sub(w.base);
         (w.held && k < 4).then_some(k)

@@ -185,36 +185,34 @@ mod imp {
     #[repr(transparent)]
     pub struct U32x8(__m256i);
 
-    /// Within each byte, the reversed low nibble moved to the high one, by nibble value.
-    const NIBBLE_REVERSED_HIGH: [u8; 32] = {
+    /// What a shuffle table holds at byte `i` of each 128-bit half.
+    #[derive(Clone, Copy)]
+    enum Shuffle {
+        /// The nibble `i` reversed, in the high half of the byte.
+        NibbleReversedHigh,
+        /// The nibble `i` reversed.
+        NibbleReversed,
+        /// Byte order within each 32-bit lane reversed.
+        BytesReversed,
+    }
+
+    const fn shuffle_table(kind: Shuffle) -> [u8; 32] {
         let mut t = [0u8; 32];
         let mut i = 0;
         while i < 32 {
-            t[i] = ((i as u8 & 15).reverse_bits() >> 4) << 4;
+            let j = i as u8 & 15;
+            t[i] = match kind {
+                Shuffle::NibbleReversedHigh => j.reverse_bits(),
+                Shuffle::NibbleReversed => j.reverse_bits() >> 4,
+                Shuffle::BytesReversed => (j & !3) + 3 - (j & 3),
+            };
             i += 1;
         }
         t
-    };
-    /// The reversed nibble, by nibble value.
-    const NIBBLE_REVERSED: [u8; 32] = {
-        let mut t = [0u8; 32];
-        let mut i = 0;
-        while i < 32 {
-            t[i] = (i as u8 & 15).reverse_bits() >> 4;
-            i += 1;
-        }
-        t
-    };
-    /// Byte order within each 32-bit lane reversed.
-    const BYTES_REVERSED: [u8; 32] = {
-        let mut t = [0u8; 32];
-        let mut i = 0;
-        while i < 32 {
-            t[i] = (i as u8 & !3) + 3 - (i as u8 & 3) - (i as u8 & 16);
-            i += 1;
-        }
-        t
-    };
+    }
+    const NIBBLE_REVERSED_HIGH: [u8; 32] = shuffle_table(Shuffle::NibbleReversedHigh);
+    const NIBBLE_REVERSED: [u8; 32] = shuffle_table(Shuffle::NibbleReversed);
+    const BYTES_REVERSED: [u8; 32] = shuffle_table(Shuffle::BytesReversed);
 
     impl U32x8 {
         #[inline(always)]
