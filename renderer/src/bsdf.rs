@@ -312,7 +312,24 @@ fn refract(wo: Vec3, m: Vec3, eta: f32) -> Option<Vec3> {
     Some(-wo / eta + m * (cos_i / eta - cos_t))
 }
 
-fn cosine_hemisphere(u: (f32, f32)) -> Vec3 {
+/// For a Lambertian surface of shading normal `n` and true normal `ng` (turned to `wo`):
+/// the cosine of `wi` to `n` when light from `wi` reflects towards `wo` (both above the
+/// shading and the true surface).
+#[inline(always)]
+pub(crate) fn diffuse_cosine(n: Vec3, ng: Vec3, wo: Vec3, wi: Vec3) -> Option<f32> {
+    let (cos_o, cos_i) = (wo.dot(n), wi.dot(n));
+    (cos_o > 0.0 && cos_i > 0.0 && wi.dot(ng) > 0.0).then_some(cos_i)
+}
+
+/// Whether [`Bsdf::new`] makes a plain Lambertian BSDF of these parameters (no layer on
+/// top of the diffuse base: no metal, no specular layer, no transmission).
+#[inline(always)]
+pub fn is_lambertian(p: &ShadingParams) -> bool {
+    p.metallic == 0.0 && p.specular == 0.0 && p.transmission == 0.0
+}
+
+#[inline(always)]
+pub(crate) fn cosine_hemisphere(u: (f32, f32)) -> Vec3 {
     // Concentric disk mapping (Shirley-Chiu), lifted to the hemisphere.
     let (a, b) = (2.0 * u.0 - 1.0, 2.0 * u.1 - 1.0);
     // The angle is pi/4 (b/a), or pi/2 - pi/4 (a/b), whose cosine and sine are the sine and
@@ -329,34 +346,71 @@ fn cosine_hemisphere(u: (f32, f32)) -> Vec3 {
     Vec3::new(x, y, safe_sqrt(1.0 - x * x - y * y))
 }
 
-impl Bsdf {
-    /// The BSDF at a surface point for light leaving towards `wo` (world space, unit).
-    /// `ng` is the geometric normal as the mesh winds it; `front` says whether `wo` is on
-    /// that side, which decides the direction of refraction.
+/// How far the mirror direction of `wo` about a shading normal must clear the surface.
+const CLEARANCE: f32 = 0.01;
+
+/// The normals of a surface point as seen from `wo`: the first step of [`Bsdf::new`], on
+/// its own so that a wave of Lambertian hits takes it in SIMD lanes with the same bits.
+#[derive(Clone, Copy, Debug)]
+pub struct Facing {
+    /// Whether `wo` is on the side the mesh's winding makes the front.
+    pub front: bool,
+    /// The true normal, turned to `wo`'s side.
+    pub ng: Vec3,
+    /// The shading normal turned to that side, or the true normal where it hides `wo`.
+    pub n: Vec3,
+    /// Whether `n` is tilted so far that the mirror direction of `wo` dips below the
+    /// surface, and [`Bsdf::new`] bends it.
+    pub tilted: bool,
+}
+
+impl Facing {
+    /// `normal` is the shading normal, `ng` the true one as the mesh winds it.
     #[inline(always)]
-    pub fn new(p: &ShadingParams, ng: Vec3, wo: Vec3) -> Bsdf {
+    pub fn new(normal: Vec3, ng: Vec3, wo: Vec3) -> Facing {
         let front = wo.dot(ng) >= 0.0;
         let ng = if front { ng } else { -ng };
-        let mut n = if p.normal.dot(ng) < 0.0 {
-            -p.normal
+        let mut n = if normal.dot(ng) < 0.0 {
+            -normal
         } else {
-            p.normal
+            normal
         };
         // A shading normal that hides wo (possible with interpolated or mapped normals)
         // would make the BSDF black from a visible side: fall back to the true normal.
         if n.dot(wo) <= 1e-4 {
             n = ng;
         }
+        let r = n * (2.0 * n.dot(wo)) - wo;
+        Facing {
+            front,
+            ng,
+            n,
+            tilted: r.dot(ng) < CLEARANCE,
+        }
+    }
+}
+
+impl Bsdf {
+    /// The BSDF at a surface point for light leaving towards `wo` (world space, unit).
+    /// `ng` is the geometric normal as the mesh winds it; `front` says whether `wo` is on
+    /// that side, which decides the direction of refraction.
+    #[inline(always)]
+    pub fn new(p: &ShadingParams, ng: Vec3, wo: Vec3) -> Bsdf {
+        let Facing {
+            front,
+            ng,
+            mut n,
+            tilted,
+        } = Facing::new(p.normal, ng, wo);
         // A normal tilted so far that the mirror direction of wo dips below the surface
         // would leave a black fringe (strong normal maps at grazing angles). Bend it towards
         // the true normal until that direction just clears the surface (Keller et al. 2017,
         // "Towards Accurate and Practical Normal Mapping").
-        let r = n * (2.0 * n.dot(wo)) - wo;
-        let clearance = 0.01;
-        if r.dot(ng) < clearance {
+        if tilted {
+            let r = n * (2.0 * n.dot(wo)) - wo;
             let flat = r - ng * r.dot(ng);
-            let lifted = (flat.normalize_or_zero() * (1.0 - clearance * clearance).sqrt()
-                + ng * clearance)
+            let lifted = (flat.normalize_or_zero() * (1.0 - CLEARANCE * CLEARANCE).sqrt()
+                + ng * CLEARANCE)
                 .normalize_or(ng);
             let bent = (wo + lifted).normalize_or(ng);
             if bent.dot(ng) > 0.0 && bent.is_finite() {
@@ -400,7 +454,8 @@ impl Bsdf {
             p_transmit: 0.0,
             lambert: false,
         };
-        if p.metallic == 0.0 && p.specular == 0.0 && bsdf.transmission == 0.0 {
+        // With no metal, the transmission kept above is the parameters' own.
+        if is_lambertian(p) {
             // With no layer on top, the general lobe weights below come out as exactly
             // (1, 0, 0); say so directly.
             bsdf.lambert = true;
@@ -580,8 +635,7 @@ impl Bsdf {
     /// from `wi` reflects towards `wo` (both above the shading and the true surface).
     #[inline]
     fn reflects_diffusely(&self, wo: Vec3, wi: Vec3) -> Option<f32> {
-        let (cos_o, cos_i) = (wo.dot(self.frame.n), wi.dot(self.frame.n));
-        (cos_o > 0.0 && cos_i > 0.0 && wi.dot(self.ng) > 0.0).then_some(cos_i)
+        diffuse_cosine(self.frame.n, self.ng, wo, wi)
     }
 
     /// Density of sampling `wi` by the three lobes proper (non-delta only).

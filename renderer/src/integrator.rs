@@ -13,9 +13,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     bsdf::Bsdf,
-    chunk::NO_LIGHT,
+    chunk::{NO_LIGHT, SurfaceAttributes},
     light::UNIFORM_SPHERE_PDF,
-    material::{self, Material},
+    material::{self, Material, ShadingParams},
     math::{offset_ray_origin, power_heuristic},
     ray::Ray,
     render::RenderSettings,
@@ -169,17 +169,17 @@ fn clamped(c: Vec3, caustic: bool, clamp: f32) -> Vec3 {
 }
 
 /// Russian roulette starts at this bounce...
-const ROULETTE_FROM_BOUNCE: u32 = 3;
+pub(crate) const ROULETTE_FROM_BOUNCE: u32 = 3;
 /// ...and keeps a path with probability (largest channel of its throughput) / this, at most
 /// [`ROULETTE_MAX_SURVIVAL`]. Survivors are weighted up to about this throughput, so it bounds
 /// how much one surviving path can add. With 1 (survival = throughput) the Cornell box's
 /// hits past the fourth carried 36% of its variance for 3.5% of its light; 0.5 costs 5% more
 /// instructions there for 19% less relMSE at equal samples, and leaves the demo scene's
 /// time x relMSE as it was (+2% instructions, -3% relMSE: its error is caustics).
-const ROULETTE_THROUGHPUT: f32 = 0.5;
+pub(crate) const ROULETTE_THROUGHPUT: f32 = 0.5;
 /// Even a path of full throughput (mirrors, glass) ends sometimes, so that loops of total
 /// internal reflection stop.
-const ROULETTE_MAX_SURVIVAL: f32 = 0.95;
+pub(crate) const ROULETTE_MAX_SURVIVAL: f32 = 0.95;
 
 fn path<D: SceneData>(
     t: &Tracer<D>,
@@ -240,6 +240,29 @@ impl PathState {
         self.l
     }
 
+    /// The bounce the path is at (0: its camera ray's hit).
+    pub(crate) fn bounce(&self) -> u32 {
+        self.bounce
+    }
+
+    /// The dimension of the draw that chose the path's ray, which the light draw where the
+    /// ray lands continues.
+    pub(crate) fn direction_dim(&self) -> u32 {
+        self.direction_dim
+    }
+
+    /// The light gathered, written by a bounce taken outside [`PathState::step`].
+    pub(crate) fn set_radiance(&mut self, l: Vec3) {
+        self.l = l;
+    }
+
+    /// Ends a bounce taken outside [`PathState::step`] as it would: whether the path goes
+    /// on after it (`more`: the bounce did not end it).
+    pub(crate) fn end_bounce(&mut self, more: bool, max_depth: u32) -> bool {
+        self.bounce += 1;
+        more && self.bounce < max_depth
+    }
+
     /// Follows the path through one more hit; false once it has ended (then it is not to be
     /// stepped again). On an error the state may be half updated: keep a copy to run the
     /// bounce again.
@@ -255,8 +278,7 @@ impl PathState {
             return Ok(false);
         }
         let more = self.bounce_once(t, sampler, clamp)?;
-        self.bounce += 1;
-        Ok(more && self.bounce < max_depth)
+        Ok(self.end_bounce(more, max_depth))
     }
 
     #[inline(always)]
@@ -266,6 +288,22 @@ impl PathState {
         sampler: &mut impl Draws,
         clamp: f32,
     ) -> Result<bool, DataError> {
+        match self.meet(t, sampler, clamp)? {
+            Some(met) => self.shade(t, sampler, met),
+            None => Ok(false),
+        }
+    }
+
+    /// The first half of a bounce: the ray's hit, its surface and material, and the light
+    /// the surface emits towards the path; `None` once the ray has left the scene (the
+    /// path then ends, with the environment's light added). Writes the state only then.
+    #[inline(always)]
+    pub(crate) fn meet<'s, D: SceneData>(
+        &mut self,
+        t: &Tracer<'s, D>,
+        sampler: &mut impl Draws,
+        clamp: f32,
+    ) -> Result<Option<Met<'s>>, DataError> {
         let scene = t.scene;
         let bounce = self.bounce;
         let ray = self.ray;
@@ -291,12 +329,12 @@ impl PathState {
                 let caustic = self.scattered_rough && matches!(prev, Some((_, _, true)));
                 self.l += clamped(c, caustic, clamp);
             }
-            return Ok(false);
+            return Ok(None);
         };
         // Whatever below may still fail for data (a texture tile), the state is only
         // written once nothing can: a bounce run again must start from the same state.
         // Most paths travel through no medium: no call and no product by one for them.
-        let mut beta = match self.medium {
+        let beta = match self.medium {
             Some(m) => {
                 self.beta * attenuate(hit.tri_hit.t, &ray, Some(&scene.materials[m as usize]))
             }
@@ -330,9 +368,39 @@ impl PathState {
             let caustic = self.scattered_rough && matches!(prev, Some((_, _, true)));
             l += clamped(beta * params.emission * weight, caustic, clamp);
         }
+        Ok(Some(Met {
+            material: m,
+            s,
+            params,
+            wo,
+            front,
+            beta,
+            l,
+            key,
+        }))
+    }
 
+    /// The second half of a bounce, after [`PathState::meet`]: light sampled at the hit,
+    /// then the direction the path goes on in; false when it ends here.
+    #[inline(always)]
+    pub(crate) fn shade<D: SceneData>(
+        &mut self,
+        t: &Tracer<D>,
+        sampler: &mut impl Draws,
+        met: Met<'_>,
+    ) -> Result<bool, DataError> {
+        let Met {
+            material: m,
+            s,
+            params,
+            wo,
+            front,
+            mut beta,
+            mut l,
+            key,
+        } = met;
+        let bounce = self.bounce;
         let bsdf = Bsdf::new(&params, s.ng, wo);
-        let ns = bsdf.shading_normal();
         let ng = Vec3A::from(bsdf.geometric_normal());
 
         // Next-event estimation. One 2D draw picks the light and the point on it, so the
@@ -354,25 +422,9 @@ impl PathState {
         };
         let next = bsdf.sample(wo, u_lobe, u_dir);
         if !bsdf.is_pure_delta()
-            && let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0)
+            && let Some(c) = next_event(t, &bsdf, wo, &s, u_light, beta, key)?
         {
-            let light = &scene.lights[li];
-            if let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), (u_point, u_light.1))? {
-                let f = bsdf.eval(wo, ls.wi) * ls.wi.dot(ns).abs();
-                if f.max_element() > 0.0 && ls.li.max_element() > 0.0 {
-                    let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
-                    let shadow = shadow_ray(origin, ls.point, ls.wi);
-                    if !t.occluded(&shadow, key)? {
-                        if ls.delta {
-                            l += beta * f * ls.li / pmf;
-                        } else {
-                            let pdf_light = ls.pdf * pmf;
-                            let w = power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi));
-                            l += beta * f * ls.li * (w / pdf_light);
-                        }
-                    }
-                }
-            }
+            l += c;
         }
         // Nothing below asks for data.
         self.l = l;
@@ -390,7 +442,7 @@ impl PathState {
         // throughput: the Cornell box's time x relMSE fell 11-16%, but the demo scene (a
         // closed, bright room with caustics) took 30% longer for 10% worse time x relMSE.
         if bounce >= ROULETTE_FROM_BOUNCE {
-            let survive = (beta.max_element() / ROULETTE_THROUGHPUT).min(ROULETTE_MAX_SURVIVAL);
+            let survive = roulette_survival(beta);
             if sampler.get_1d() >= survive {
                 return Ok(false);
             }
@@ -399,15 +451,103 @@ impl PathState {
         if bs.transmitted {
             self.medium = next_medium(m, s.material, front, self.medium);
         }
-        self.beta = beta;
-        let origin = offset_ray_origin(s.p, s.p_error, ng, bs.wi.into());
-        self.ray = Ray::new(origin, bs.wi.into(), f32::INFINITY);
-        t.count_secondary_ray();
-        self.prev = Some((Vec3::from(s.p), bs.pdf, bs.delta));
-        self.direction_dim = direction_dim;
-        self.scattered_rough |= !bs.delta;
+        self.go_on(
+            t,
+            beta,
+            (s.p, s.p_error),
+            ng,
+            bs.wi,
+            bs.pdf,
+            bs.delta,
+            direction_dim,
+        );
         Ok(true)
     }
+
+    /// The path leaves the surface point `p` (with its rounding error bound, and `ng` its
+    /// true normal turned to the path's side) in direction `wi`, drawn with density `pdf`
+    /// (a delta or not) from the draw at `direction_dim`, carrying `beta`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    pub(crate) fn go_on<D: SceneData>(
+        &mut self,
+        t: &Tracer<D>,
+        beta: Vec3,
+        (p, p_error): (Vec3A, Vec3A),
+        ng: Vec3A,
+        wi: Vec3,
+        pdf: f32,
+        delta: bool,
+        direction_dim: u32,
+    ) {
+        self.beta = beta;
+        let origin = offset_ray_origin(p, p_error, ng, wi.into());
+        self.ray = Ray::new(origin, wi.into(), f32::INFINITY);
+        t.count_secondary_ray();
+        self.prev = Some((Vec3::from(p), pdf, delta));
+        self.direction_dim = direction_dim;
+        self.scattered_rough |= !delta;
+    }
+}
+
+/// What [`PathState::meet`] found: the surface hit, its material and shading parameters,
+/// and the path's throughput and light so far (with what the surface emits).
+pub(crate) struct Met<'s> {
+    pub material: &'s Material,
+    pub s: SurfaceAttributes,
+    pub params: ShadingParams,
+    pub wo: Vec3,
+    pub front: bool,
+    pub beta: Vec3,
+    pub l: Vec3,
+    pub key: AlphaKey,
+}
+
+/// The chance that Russian roulette keeps a path of throughput `beta`.
+#[inline(always)]
+pub(crate) fn roulette_survival(beta: Vec3) -> f32 {
+    (beta.max_element() / ROULETTE_THROUGHPUT).min(ROULETTE_MAX_SURVIVAL)
+}
+
+/// Next-event estimation at the surface `s` for a path of throughput `beta`: the light
+/// `u_light` picks (and the point on it), weighted against BSDF sampling; `None` when it
+/// adds nothing (no light, a light facing away or blocked).
+#[inline(always)]
+pub(crate) fn next_event<D: SceneData>(
+    t: &Tracer<D>,
+    bsdf: &Bsdf,
+    wo: Vec3,
+    s: &SurfaceAttributes,
+    u_light: (f32, f32),
+    beta: Vec3,
+    key: AlphaKey,
+) -> Result<Option<Vec3>, DataError> {
+    let scene = t.scene;
+    let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0) else {
+        return Ok(None);
+    };
+    let light = &scene.lights[li];
+    let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), (u_point, u_light.1))? else {
+        return Ok(None);
+    };
+    let ns = bsdf.shading_normal();
+    let f = bsdf.eval(wo, ls.wi) * ls.wi.dot(ns).abs();
+    if !(f.max_element() > 0.0 && ls.li.max_element() > 0.0) {
+        return Ok(None);
+    }
+    let ng = Vec3A::from(bsdf.geometric_normal());
+    let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
+    let shadow = shadow_ray(origin, ls.point, ls.wi);
+    if t.occluded(&shadow, key)? {
+        return Ok(None);
+    }
+    Ok(Some(if ls.delta {
+        beta * f * ls.li / pmf
+    } else {
+        let pdf_light = ls.pdf * pmf;
+        let w = power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi));
+        beta * f * ls.li * (w / pdf_light)
+    }))
 }
 
 /// Surfaces smoother than this are mirrors to the Whitted integrator.

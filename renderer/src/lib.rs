@@ -12,6 +12,7 @@ pub mod camera;
 pub mod chunk;
 pub mod demo;
 pub mod denoise;
+mod diffuse_wave;
 pub mod integrator;
 pub mod light;
 pub mod material;

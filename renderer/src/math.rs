@@ -52,6 +52,7 @@ pub struct Frame {
 }
 
 impl Frame {
+    #[inline(always)]
     pub fn from_normal(n: Vec3) -> Frame {
         let sign = 1.0f32.copysign(n.z);
         let a = -1.0 / (sign + n.z);
@@ -197,7 +198,7 @@ fn sincos_octant(x: f32) -> (f32, f32) {
 
 /// sin and cos of `pi / 4 * t` for `t` in [-1, 1] (the angles of the concentric disk
 /// mapping).
-#[inline]
+#[inline(always)]
 pub fn sincos_quarter_pi(t: f32) -> (f32, f32) {
     sincos_octant(std::f32::consts::FRAC_PI_4 * t)
 }

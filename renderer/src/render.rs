@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     camera::{Camera, CameraRays},
+    diffuse_wave::DiffuseWave,
     integrator::{self, IntegratorKind, PathState, WhittedLimits},
     math::luminance,
     sampler::{PixelSeeds, SampleWave, WAVE_LANES},
@@ -235,6 +236,7 @@ fn path_wave<D: SceneData>(
     let mut radiance = [Vec3::ZERO; WAVE_LANES as usize];
     let mut bounce = 0;
     let mut live = lanes;
+    let max_depth = settings.max_depth;
     while live > 0 {
         // Eight lanes are drawn for at the cost of about one drawn alone.
         if live > 1 {
@@ -242,22 +244,38 @@ fn path_wave<D: SceneData>(
         } else {
             wave.release();
         }
+        // Lambertian hits wait for the others and are shaded together, in SIMD lanes.
+        let mut diffuse = DiffuseWave::new(bounce);
+        let together = live > 1;
         live = 0;
         for (lane, slot) in paths.iter_mut().enumerate() {
             let Some(path) = slot else { continue };
-            let more = path.step(
-                tracer,
-                &mut wave.lane(lane),
-                settings.max_depth,
-                settings.clamp_indirect,
-            )?;
-            if more {
+            // What PathState::step does, in its two halves.
+            let more = path.bounce() < max_depth && {
+                let mut draws = wave.lane(lane);
+                match path.meet(tracer, &mut draws, settings.clamp_indirect)? {
+                    None => false,
+                    Some(met) => {
+                        let met = if together {
+                            match diffuse.push(tracer, lane, path, met, &mut draws) {
+                                None => continue,
+                                Some(met) => met,
+                            }
+                        } else {
+                            met
+                        };
+                        path.shade(tracer, &mut draws, met)?
+                    }
+                }
+            };
+            if path.end_bounce(more, max_depth) {
                 live += 1;
             } else {
                 radiance[lane] = path.radiance();
                 *slot = None;
             }
         }
+        live += diffuse.shade(tracer, &mut paths, &mut radiance, max_depth)?;
         bounce += 1;
     }
     Ok(radiance)

@@ -1,5 +1,5 @@
-//! Small SIMD types: eight and four `f32` lanes and their masks for the ray-casting kernel,
-//! eight `u32` lanes for the sampler's hashes.
+//! Small SIMD types: eight and four `f32` lanes and their masks for the ray-casting kernel
+//! and the shading of a wave's diffuse hits, eight `u32` lanes for the sampler's hashes.
 //!
 //! With AVX2 and FMA (the default build, x86-64-v3) each operation is one instruction; on
 //! other targets the same operations run lane by lane. Both give the same bits: `min`/`max`
@@ -74,6 +74,56 @@ mod imp {
         pub fn le(self, b: F32x8) -> M8 {
             unsafe { M8(_mm256_cmp_ps::<_CMP_LE_OQ>(self.0, b.0)) }
         }
+        #[inline(always)]
+        pub fn lt(self, b: F32x8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_LT_OQ>(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn gt(self, b: F32x8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_GT_OQ>(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn eq(self, b: F32x8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn add(self, b: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_add_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn sub(self, b: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_sub_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn div(self, b: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_div_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn sqrt(self) -> F32x8 {
+            unsafe { F32x8(_mm256_sqrt_ps(self.0)) }
+        }
+        #[inline(always)]
+        pub fn abs(self) -> F32x8 {
+            unsafe { F32x8(_mm256_andnot_ps(_mm256_set1_ps(-0.0), self.0)) }
+        }
+        /// The lanes with their sign bit flipped (`-x`, NaNs included).
+        #[inline(always)]
+        pub fn neg(self) -> F32x8 {
+            unsafe { F32x8(_mm256_xor_ps(self.0, _mm256_set1_ps(-0.0))) }
+        }
+        /// `1.0f32.copysign(x)` of each lane.
+        #[inline(always)]
+        pub fn one_with_sign_of(self) -> F32x8 {
+            unsafe {
+                let sign = _mm256_and_ps(self.0, _mm256_set1_ps(-0.0));
+                F32x8(_mm256_or_ps(sign, _mm256_set1_ps(1.0)))
+            }
+        }
+        /// Lanes neither infinite nor NaN.
+        #[inline(always)]
+        pub fn is_finite(self) -> M8 {
+            self.abs().lt(F32x8::splat(f32::INFINITY))
+        }
     }
 
     impl M8 {
@@ -81,6 +131,28 @@ mod imp {
         #[inline(always)]
         pub fn bits(self) -> u32 {
             unsafe { _mm256_movemask_ps(self.0) as u32 }
+        }
+        #[inline(always)]
+        pub fn and(self, b: M8) -> M8 {
+            unsafe { M8(_mm256_and_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn or(self, b: M8) -> M8 {
+            unsafe { M8(_mm256_or_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn not(self) -> M8 {
+            unsafe {
+                M8(_mm256_xor_ps(
+                    self.0,
+                    _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+                ))
+            }
+        }
+        /// `a` where the mask is true, `b` elsewhere.
+        #[inline(always)]
+        pub fn select(self, a: F32x8, b: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_blendv_ps(b.0, a.0, self.0)) }
         }
     }
 
@@ -355,8 +427,64 @@ mod imp {
             F32x8(std::array::from_fn(|i| max(self.0[i], b.0[i])))
         }
         #[inline(always)]
+        fn cmp(self, b: F32x8, f: impl Fn(f32, f32) -> bool) -> M8 {
+            M8((0..8).fold(0, |m, i| m | ((f(self.0[i], b.0[i]) as u32) << i)))
+        }
+        #[inline(always)]
+        fn map(self, f: impl Fn(f32) -> f32) -> F32x8 {
+            F32x8(std::array::from_fn(|i| f(self.0[i])))
+        }
+        #[inline(always)]
+        fn zip(self, b: F32x8, f: impl Fn(f32, f32) -> f32) -> F32x8 {
+            F32x8(std::array::from_fn(|i| f(self.0[i], b.0[i])))
+        }
+        #[inline(always)]
         pub fn le(self, b: F32x8) -> M8 {
-            M8((0..8).fold(0, |m, i| m | (((self.0[i] <= b.0[i]) as u32) << i)))
+            self.cmp(b, |x, y| x <= y)
+        }
+        #[inline(always)]
+        pub fn lt(self, b: F32x8) -> M8 {
+            self.cmp(b, |x, y| x < y)
+        }
+        #[inline(always)]
+        pub fn gt(self, b: F32x8) -> M8 {
+            self.cmp(b, |x, y| x > y)
+        }
+        #[inline(always)]
+        pub fn eq(self, b: F32x8) -> M8 {
+            self.cmp(b, |x, y| x == y)
+        }
+        #[inline(always)]
+        pub fn add(self, b: F32x8) -> F32x8 {
+            self.zip(b, |x, y| x + y)
+        }
+        #[inline(always)]
+        pub fn sub(self, b: F32x8) -> F32x8 {
+            self.zip(b, |x, y| x - y)
+        }
+        #[inline(always)]
+        pub fn div(self, b: F32x8) -> F32x8 {
+            self.zip(b, |x, y| x / y)
+        }
+        #[inline(always)]
+        pub fn sqrt(self) -> F32x8 {
+            self.map(f32::sqrt)
+        }
+        #[inline(always)]
+        pub fn abs(self) -> F32x8 {
+            self.map(f32::abs)
+        }
+        #[inline(always)]
+        pub fn neg(self) -> F32x8 {
+            self.map(|x| -x)
+        }
+        #[inline(always)]
+        pub fn one_with_sign_of(self) -> F32x8 {
+            self.map(|x| 1.0f32.copysign(x))
+        }
+        #[inline(always)]
+        pub fn is_finite(self) -> M8 {
+            M8((0..8).fold(0, |m, i| m | ((self.0[i].is_finite() as u32) << i)))
         }
     }
 
@@ -364,6 +492,24 @@ mod imp {
         #[inline(always)]
         pub fn bits(self) -> u32 {
             self.0
+        }
+        #[inline(always)]
+        pub fn and(self, b: M8) -> M8 {
+            M8(self.0 & b.0)
+        }
+        #[inline(always)]
+        pub fn or(self, b: M8) -> M8 {
+            M8(self.0 | b.0)
+        }
+        #[inline(always)]
+        pub fn not(self) -> M8 {
+            M8(!self.0 & 0xff)
+        }
+        #[inline(always)]
+        pub fn select(self, a: F32x8, b: F32x8) -> F32x8 {
+            F32x8(std::array::from_fn(|i| {
+                if self.0 >> i & 1 != 0 { a.0[i] } else { b.0[i] }
+            }))
         }
     }
 
