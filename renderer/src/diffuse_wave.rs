@@ -191,14 +191,24 @@ struct Output {
 }
 
 impl DiffuseWave {
-    pub(crate) fn new(bounce: u32) -> DiffuseWave {
+    /// An empty wave, for as many bounces as [`DiffuseWave::begin`] starts: its arrays
+    /// (2 KB) are written once, not at every bounce.
+    pub(crate) fn new() -> DiffuseWave {
         DiffuseWave {
             len: 0,
-            bounce,
+            bounce: 0,
             state: [None; LANES],
             input: Input::default(),
             output: Output::default(),
         }
+    }
+
+    /// Empties the wave for the hits of bounce `bounce`. What earlier hits left in the
+    /// arrays stays: lanes past the hits taken are computed and never read, and a hit with
+    /// no light chosen never reads the light's arrays.
+    pub(crate) fn begin(&mut self, bounce: u32) {
+        self.len = 0;
+        self.bounce = bounce;
     }
 
     /// Takes the hit `met` of the path in wave lane `lane`, with that lane's draws, if it is

@@ -183,10 +183,18 @@ pub fn render_pixel<D: SceneData>(
     let rays = camera.rays(settings.width, settings.height);
     let seeds = PixelSeeds::new(settings.seed, x, y);
     if settings.integrator == IntegratorKind::Path {
+        let mut diffuse = DiffuseWave::new();
         let mut first = 0;
         while first < settings.spp {
             let lanes = (settings.spp - first).min(WAVE_LANES) as usize;
-            let radiance = path_wave(tracer, settings, &rays, &seeds, (x, y), first, lanes)?;
+            let radiance = path_wave(
+                tracer,
+                settings,
+                (&rays, &seeds, &mut diffuse),
+                (x, y),
+                first,
+                lanes,
+            )?;
             for l in &radiance[..lanes] {
                 if sum.add(*l, settings, stats) {
                     return Ok(sum.finish(stats));
@@ -218,8 +226,7 @@ pub fn render_pixel<D: SceneData>(
 fn path_wave<D: SceneData>(
     tracer: &Tracer<D>,
     settings: &RenderSettings,
-    rays: &CameraRays<'_>,
-    seeds: &PixelSeeds,
+    (rays, seeds, diffuse): (&CameraRays<'_>, &PixelSeeds, &mut DiffuseWave),
     (x, y): (u32, u32),
     first: u32,
     lanes: usize,
@@ -245,7 +252,7 @@ fn path_wave<D: SceneData>(
             wave.release();
         }
         // Lambertian hits wait for the others and are shaded together, in SIMD lanes.
-        let mut diffuse = DiffuseWave::new(bounce);
+        diffuse.begin(bounce);
         let together = live > 1;
         live = 0;
         for (lane, slot) in paths.iter_mut().enumerate() {
