@@ -141,14 +141,16 @@ impl PixelSum {
         for c in 0..3 {
             self.sum[c] += l[c] as f64;
         }
+        self.n += 1;
+        if settings.noise_threshold <= 0.0 {
+            return false;
+        }
+        // Adaptive stop, decided from this pixel's own samples only.
         let lum = luminance(l) as f64;
         self.sum_lum += lum;
         self.sum_lum2 += lum * lum;
-        self.n += 1;
-        // Adaptive stop, decided from this pixel's own samples only.
         let n = self.n;
-        if settings.noise_threshold > 0.0
-            && n >= settings.min_spp.max(2)
+        if n >= settings.min_spp.max(2)
             && n.is_multiple_of(ADAPTIVE_BATCH)
         {
             let nf = n as f64;
