@@ -490,6 +490,33 @@ impl Bsdf {
         bsdf
     }
 
+    /// The plain Lambertian BSDF [`Bsdf::new`] makes of parameters that
+    /// [`is_lambertian`] accepts, with no tangent, from what it takes of them: the shading
+    /// normal `n` and the true normal `ng` as [`Facing`] turned them (and `n` bent where
+    /// it was tilted), and the base colour. It samples, evaluates and weighs exactly as
+    /// that one does (they read only these).
+    #[inline(always)]
+    pub(crate) fn lambertian(n: Vec3, ng: Vec3, base: Vec3) -> Bsdf {
+        Bsdf {
+            frame: Frame::from_normal(n),
+            ng,
+            base,
+            metallic: 0.0,
+            alpha: 1.0,
+            f0: Vec3::ZERO,
+            f90: 0.0,
+            transmission: 0.0,
+            eta: 1.5,
+            volume: false,
+            albedo_o: Vec3::ZERO,
+            albedo_avg: Vec3::ZERO,
+            p_diffuse: 1.0,
+            p_specular: 0.0,
+            p_transmit: 0.0,
+            lambert: true,
+        }
+    }
+
     pub fn shading_normal(&self) -> Vec3 {
         self.frame.n
     }

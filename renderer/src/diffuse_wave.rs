@@ -16,16 +16,18 @@
 //! one-path arithmetic, written with the very functions the bounce calls; a test holds the
 //! SIMD lanes to it. What cannot be done lane by lane stays with the path:
 //! the ray queries, the light's choice (in f64), and moving ray origins off the surface.
-//! A hit that needs more (a textured emitter chosen for light sampling, a shading normal
-//! that must be bent, a tangent frame) is shaded by [`PathState::shade`] instead.
+//! A light other than a triangle of constant radiance (the environment, a punctual light,
+//! a textured emitter) is sampled by the path's own next-event estimation; a hit that needs
+//! more (a shading normal that must be bent, a tangent frame) is shaded by
+//! [`PathState::shade`] instead.
 
 use glam::{Vec3, Vec3A};
 
 use crate::{
-    bsdf::{Facing, cosine_hemisphere, diffuse_cosine, is_lambertian},
+    bsdf::{Bsdf, Facing, cosine_hemisphere, diffuse_cosine, is_lambertian},
     integrator::{
         Met, PathState, ROULETTE_FROM_BOUNCE, ROULETTE_MAX_SURVIVAL, ROULETTE_THROUGHPUT,
-        roulette_survival,
+        next_event, roulette_survival,
     },
     light::Light,
     math::{Frame, INV_PI, offset_ray_origin, power_heuristic, safe_sqrt},
@@ -135,8 +137,19 @@ struct LaneState {
     key: AlphaKey,
     direction_dim: u32,
     u_roulette: f32,
-    /// Whether the light draw chose a light (a triangle: see [`DiffuseWave::push`]).
-    has_light: bool,
+    light: LaneLight,
+}
+
+/// What the light draw of a lane chose.
+#[derive(Clone, Copy)]
+enum LaneLight {
+    /// No light: the scene has none.
+    None,
+    /// A triangle of constant radiance: sampled in the SIMD lanes.
+    Triangle,
+    /// Another light (the environment, a punctual light, a textured emitter): sampled by
+    /// [`next_event`], the path's own, with this light draw.
+    Other((f32, f32)),
 }
 
 /// The Lambertian hits of one bounce of a wave, structure of arrays.
@@ -234,9 +247,9 @@ impl DiffuseWave {
         }
         let u_light = draws.get_2d_after(path.direction_dim());
         let chosen = scene.light_distribution.sample_reusing(u_light.0);
-        // A light sample that reads a texture, or of another kind, is left to the path.
+        // A light sample that reads a texture, or of another kind, is taken by the path's
+        // own next-event estimation, in `shade`.
         let light = match chosen.map(|(i, _, _)| &scene.lights[i]) {
-            None => None,
             Some(&Light::Triangle {
                 p: v,
                 n,
@@ -248,10 +261,7 @@ impl DiffuseWave {
                 let le = scene.materials[material as usize].emissive;
                 Some((v, n, area2, two_sided, le))
             }
-            Some(_) => {
-                draws.start_bounce(self.bounce);
-                return Some(met);
-            }
+            _ => None,
         };
         let direction_dim = draws.dim();
         let u_dir = draws.get_2d();
@@ -292,7 +302,11 @@ impl DiffuseWave {
             key: met.key,
             direction_dim,
             u_roulette,
-            has_light: light.is_some(),
+            light: match (chosen, light) {
+                (_, Some(_)) => LaneLight::Triangle,
+                (Some(_), None) => LaneLight::Other(u_light),
+                (None, _) => LaneLight::None,
+            },
         });
         None
     }
@@ -447,6 +461,23 @@ impl DiffuseWave {
         store3(q, &mut out.light_point);
     }
 
+    /// Next-event estimation for lane `k`, whose light draw chose a light other than a
+    /// triangle of constant radiance: the path's own, with the lane's BSDF. Out of line,
+    /// so that the triangle lights' loop stays as small as it was.
+    #[inline(never)]
+    fn other_light<D: SceneData>(
+        &self,
+        t: &Tracer<D>,
+        k: usize,
+        at: (Vec3A, Vec3A),
+        u_light: (f32, f32),
+        key: AlphaKey,
+    ) -> Result<Option<Vec3>, DataError> {
+        let i = &self.input;
+        let bsdf = Bsdf::lambertian(get(&i.n, k), get(&i.ng, k), get(&i.base, k));
+        next_event(t, &bsdf, get(&i.wo, k), at, u_light, get(&i.beta, k), key)
+    }
+
     /// Shades every hit taken, tracing their shadow rays, and ends their bounce as
     /// [`PathState::step`] would: a path that ends leaves `paths` with its light in
     /// `radiance` (both by wave lane). Returns how many go on.
@@ -470,13 +501,21 @@ impl DiffuseWave {
             };
             let ng = Vec3A::from(get(&self.input.ng, k));
             let mut l = st.l;
-            if st.has_light && o.lit >> k & 1 != 0 {
-                let wl = get(&o.light_dir, k);
-                let origin = offset_ray_origin(st.p, st.p_error, ng, wl.into());
-                let shadow = shadow_ray(origin, Some(get(&o.light_point, k).into()), wl);
-                if !t.occluded(&shadow, st.key)? {
-                    l += get(&o.light_add, k);
+            match st.light {
+                LaneLight::Triangle if o.lit >> k & 1 != 0 => {
+                    let wl = get(&o.light_dir, k);
+                    let origin = offset_ray_origin(st.p, st.p_error, ng, wl.into());
+                    let shadow = shadow_ray(origin, Some(get(&o.light_point, k).into()), wl);
+                    if !t.occluded(&shadow, st.key)? {
+                        l += get(&o.light_add, k);
+                    }
                 }
+                LaneLight::Other(u_light) => {
+                    if let Some(c) = self.other_light(t, k, (st.p, st.p_error), u_light, st.key)? {
+                        l += c;
+                    }
+                }
+                _ => {}
             }
             path.set_radiance(l);
             let mut more = o.goes_on >> k & 1 != 0;

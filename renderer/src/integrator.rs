@@ -422,7 +422,7 @@ impl PathState {
         };
         let next = bsdf.sample(wo, u_lobe, u_dir);
         if !bsdf.is_pure_delta()
-            && let Some(c) = next_event(t, &bsdf, wo, &s, u_light, beta, key)?
+            && let Some(c) = next_event(t, &bsdf, wo, (s.p, s.p_error), u_light, beta, key)?
         {
             l += c;
         }
@@ -509,15 +509,16 @@ pub(crate) fn roulette_survival(beta: Vec3) -> f32 {
     (beta.max_element() / ROULETTE_THROUGHPUT).min(ROULETTE_MAX_SURVIVAL)
 }
 
-/// Next-event estimation at the surface `s` for a path of throughput `beta`: the light
-/// `u_light` picks (and the point on it), weighted against BSDF sampling; `None` when it
-/// adds nothing (no light, a light facing away or blocked).
+/// Next-event estimation at the surface point `p` (with its rounding error bound) for a
+/// path of throughput `beta`: the light `u_light` picks (and the point on it), weighted
+/// against BSDF sampling; `None` when it adds nothing (no light, a light facing away or
+/// blocked).
 #[inline(always)]
 pub(crate) fn next_event<D: SceneData>(
     t: &Tracer<D>,
     bsdf: &Bsdf,
     wo: Vec3,
-    s: &SurfaceAttributes,
+    (p, p_error): (Vec3A, Vec3A),
     u_light: (f32, f32),
     beta: Vec3,
     key: AlphaKey,
@@ -527,7 +528,7 @@ pub(crate) fn next_event<D: SceneData>(
         return Ok(None);
     };
     let light = &scene.lights[li];
-    let Some(ls) = light.sample(scene, t.data, Vec3::from(s.p), (u_point, u_light.1))? else {
+    let Some(ls) = light.sample(scene, t.data, Vec3::from(p), (u_point, u_light.1))? else {
         return Ok(None);
     };
     let ns = bsdf.shading_normal();
@@ -536,7 +537,7 @@ pub(crate) fn next_event<D: SceneData>(
         return Ok(None);
     }
     let ng = Vec3A::from(bsdf.geometric_normal());
-    let origin = offset_ray_origin(s.p, s.p_error, ng, ls.wi.into());
+    let origin = offset_ray_origin(p, p_error, ng, ls.wi.into());
     let shadow = shadow_ray(origin, ls.point, ls.wi);
     if t.occluded(&shadow, key)? {
         return Ok(None);

@@ -150,9 +150,7 @@ impl PixelSum {
         self.sum_lum += lum;
         self.sum_lum2 += lum * lum;
         let n = self.n;
-        if n >= settings.min_spp.max(2)
-            && n.is_multiple_of(ADAPTIVE_BATCH)
-        {
+        if n >= settings.min_spp.max(2) && n.is_multiple_of(ADAPTIVE_BATCH) {
             let nf = n as f64;
             let mean = self.sum_lum / nf;
             let var = ((self.sum_lum2 - nf * mean * mean) / (nf - 1.0)).max(0.0);
@@ -856,7 +854,22 @@ mod tests {
 
     /// The demo scene in chunks of 64 triangles, and its camera.
     fn scene() -> (SceneHeader, MemoryData, Camera) {
-        let desc = demo_scene();
+        scene_of(demo_scene())
+    }
+
+    /// The demo scene lit also by a uniform sky and a point light: lights that a wave's
+    /// diffuse hits leave to the path's own next-event estimation.
+    fn sky_scene() -> (SceneHeader, MemoryData, Camera) {
+        let mut desc = demo_scene();
+        desc.environment = Some(crate::light::Environment::uniform(Vec3::splat(0.4)));
+        desc.lights.push(crate::light::Light::Point {
+            position: Vec3::new(0.5, 3.0, 1.0),
+            intensity: Vec3::splat(6.0),
+        });
+        scene_of(desc)
+    }
+
+    fn scene_of(desc: crate::scene::SceneDesc) -> (SceneHeader, MemoryData, Camera) {
         let camera = desc.cameras[0].clone();
         let (header, data) = prepare(
             desc,
@@ -879,7 +892,19 @@ mod tests {
         (Vec<[f32; 3]>, TraceStats, u64),
         (Vec<[f32; 3]>, TraceStats, u64, CoherenceStats),
     ) {
-        let (header, data, camera) = scene();
+        both_ways_in(scene(), settings, rect, room)
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn both_ways_in(
+        (header, data, camera): (SceneHeader, MemoryData, Camera),
+        settings: &RenderSettings,
+        rect: Rect,
+        room: usize,
+    ) -> (
+        (Vec<[f32; 3]>, TraceStats, u64),
+        (Vec<[f32; 3]>, TraceStats, u64, CoherenceStats),
+    ) {
         let plain = Scarce::new(data.clone(), room);
         let tracer = Tracer::new(&header, &plain);
         let mut stats = TraceStats::default();
@@ -975,6 +1000,30 @@ mod tests {
             assert_eq!(bits(&pixels), bits(&c_pixels), "{settings:?} room {room}");
             assert_eq!(stats, c_stats, "{settings:?} room {room}");
         }
+    }
+
+    /// The wave's diffuse hits take the sky and a point light through the path's own
+    /// next-event estimation, and still give the bits of paths stepped one at a time.
+    #[test]
+    fn coherent_rays_agree_under_a_sky_and_a_point_light() {
+        let settings = RenderSettings {
+            width: 40,
+            height: 30,
+            spp: 16,
+            ..RenderSettings::default()
+        };
+        let rect = Rect {
+            x: 2,
+            y: 12,
+            width: 30,
+            height: 3,
+        };
+        let ((pixels, stats, _), (c_pixels, c_stats, _, _)) =
+            both_ways_in(sky_scene(), &settings, rect, 4);
+        assert_eq!(bits(&pixels), bits(&c_pixels));
+        assert_eq!(stats, c_stats);
+        let (lit, dark) = (bits(&pixels), both_ways(&settings, rect, 4).0.0);
+        assert_ne!(lit, bits(&dark), "the sky and the point light add light");
     }
 
     #[test]
