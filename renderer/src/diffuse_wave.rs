@@ -12,7 +12,7 @@
 //! rounding: the same products, sums, quotients and square roots, comparisons where it
 //! branches, and the same fused multiply-adds in the sine and cosine. So the bits, and the
 //! images, are the same as path by path, and render nodes stepping paths one at a time
-//! with memory-coherent rays still agree with this to the last bit. `compute_lanes` is that
+//! with memory-coherent rays still agree with this to the last bit. `compute_lane` is that
 //! one-path arithmetic, written with the very functions the bounce calls; a test holds the
 //! SIMD lanes to it. What cannot be done lane by lane stays with the path:
 //! the ray queries, the light's choice (in f64), and moving ray origins off the surface.
@@ -30,7 +30,7 @@ use crate::{
         next_event, roulette_survival,
     },
     light::Light,
-    math::{Frame, INV_PI, offset_ray_origin, power_heuristic, safe_sqrt},
+    math::{COS_TAYLOR, Frame, INV_PI, SIN_TAYLOR, offset_ray_origin, power_heuristic, safe_sqrt},
     sampler::Draws,
     simd::{F32x8, M8},
     source::{DataError, SceneData},
@@ -107,22 +107,23 @@ fn power_heuristic8(f_pdf: F32x8, g_pdf: F32x8) -> F32x8 {
         .select(F32x8::splat(1.0), w)
 }
 
-/// `math::sincos_octant`, the same fused multiply-adds.
+/// `math::sincos_octant`, the same coefficients and fused multiply-adds.
 #[inline(always)]
 fn sincos_octant(x: F32x8) -> (F32x8, F32x8) {
-    let c = F32x8::splat;
+    let [s0, s1, s2, s3] = SIN_TAYLOR.map(F32x8::splat);
+    let [c0, c1, c2, c3, c4, c5] = COS_TAYLOR.map(F32x8::splat);
     let x2 = x.mul(x);
     let sin = x2
-        .mul_add(c(1.0 / 362_880.0), c(-1.0 / 5_040.0))
-        .mul_add(x2, c(1.0 / 120.0))
-        .mul_add(x2, c(-1.0 / 6.0))
+        .mul_add(s0, s1)
+        .mul_add(x2, s2)
+        .mul_add(x2, s3)
         .mul_add(x2.mul(x), x);
     let cos = x2
-        .mul_add(c(-1.0 / 3_628_800.0), c(1.0 / 40_320.0))
-        .mul_add(x2, c(-1.0 / 720.0))
-        .mul_add(x2, c(1.0 / 24.0))
-        .mul_add(x2, c(-0.5))
-        .mul_add(x2, c(1.0));
+        .mul_add(c0, c1)
+        .mul_add(x2, c2)
+        .mul_add(x2, c3)
+        .mul_add(x2, c4)
+        .mul_add(x2, c5);
     (sin, cos)
 }
 

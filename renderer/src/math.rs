@@ -181,20 +181,35 @@ fn step_towards_sse2(v: Vec3A, dir: Vec3A) -> Vec3A {
 /// no more, and libm's `sincosf` cost a call and a branchy reduction per BSDF sample.
 #[inline(always)]
 fn sincos_octant(x: f32) -> (f32, f32) {
+    let [s0, s1, s2, s3] = SIN_TAYLOR;
+    let [c0, c1, c2, c3, c4, c5] = COS_TAYLOR;
     let x2 = x * x;
     let sin = x2
-        .mul_add(1.0 / 362_880.0, -1.0 / 5_040.0)
-        .mul_add(x2, 1.0 / 120.0)
-        .mul_add(x2, -1.0 / 6.0)
+        .mul_add(s0, s1)
+        .mul_add(x2, s2)
+        .mul_add(x2, s3)
         .mul_add(x2 * x, x);
     let cos = x2
-        .mul_add(-1.0 / 3_628_800.0, 1.0 / 40_320.0)
-        .mul_add(x2, -1.0 / 720.0)
-        .mul_add(x2, 1.0 / 24.0)
-        .mul_add(x2, -0.5)
-        .mul_add(x2, 1.0);
+        .mul_add(c0, c1)
+        .mul_add(x2, c2)
+        .mul_add(x2, c3)
+        .mul_add(x2, c4)
+        .mul_add(x2, c5);
     (sin, cos)
 }
+
+/// The Taylor coefficients of [`sincos_octant`], highest power first: sin's of x^9 to x^3
+/// (in x^2, times x, plus x), cos's of x^10 to x^0 (in x^2). Shared with the SIMD lanes of
+/// `diffuse_wave`, which must round exactly as this does.
+pub(crate) const SIN_TAYLOR: [f32; 4] = [1.0 / 362_880.0, -1.0 / 5_040.0, 1.0 / 120.0, -1.0 / 6.0];
+pub(crate) const COS_TAYLOR: [f32; 6] = [
+    -1.0 / 3_628_800.0,
+    1.0 / 40_320.0,
+    -1.0 / 720.0,
+    1.0 / 24.0,
+    -0.5,
+    1.0,
+];
 
 /// sin and cos of `pi / 4 * t` for `t` in [-1, 1] (the angles of the concentric disk
 /// mapping).
