@@ -309,7 +309,7 @@ impl PathState {
         // Read in place, not copied: the last bounce wrote them field by field, and a copy
         // may read them in wider words than were written, which the processor cannot
         // forward from its store buffer (the load then waits for the stores to reach the
-        // cache; 11% of the Cornell box's time in one build).
+        // cache: part of an 11% slowdown of one build on the Cornell box).
         let ray = &self.ray;
         let prev = &self.prev;
         sampler.start_bounce(bounce);
