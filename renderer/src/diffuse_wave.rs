@@ -12,10 +12,10 @@
 //! rounding: the same products, sums, quotients and square roots, comparisons where it
 //! branches, and the same fused multiply-adds in the sine and cosine. So the bits, and the
 //! images, are the same as path by path, and render nodes stepping paths one at a time
-//! with memory-coherent rays still agree with this to the last bit. `compute_lane` is that
-//! one-path arithmetic, written with the very functions the bounce calls; a test holds the
-//! SIMD lanes to it. What cannot be done lane by lane stays with the path:
-//! the ray queries, the light's choice (in f64), and moving ray origins off the surface.
+//! with memory-coherent rays still agree with this to the last bit. `tests::compute_lane`
+//! is that one-path arithmetic, written with the very functions the bounce calls; a test
+//! holds the SIMD lanes to it. What cannot be done lane by lane stays with the path: the
+//! ray queries, the light's choice (in f64), and moving ray origins off the surface.
 //! A light other than a triangle of constant radiance (the environment, a punctual light,
 //! a textured emitter) is sampled by the path's own next-event estimation; a hit that needs
 //! more (a shading normal that must be bent, a tangent frame) is shaded by
@@ -24,13 +24,13 @@
 use glam::{Vec3, Vec3A};
 
 use crate::{
-    bsdf::{Bsdf, Facing, cosine_hemisphere, diffuse_cosine, is_lambertian},
+    bsdf::{Bsdf, Facing, is_lambertian},
     integrator::{
-        Met, PathState, ROULETTE_FROM_BOUNCE, ROULETTE_MAX_SURVIVAL, ROULETTE_THROUGHPUT,
-        next_event, roulette_survival,
+        LightChoice, Met, PathState, ROULETTE_FROM_BOUNCE, ROULETTE_MAX_SURVIVAL,
+        ROULETTE_THROUGHPUT, choose_light, next_event,
     },
     light::Light,
-    math::{COS_TAYLOR, Frame, INV_PI, SIN_TAYLOR, offset_ray_origin, power_heuristic, safe_sqrt},
+    math::{COS_TAYLOR, INV_PI, SIN_TAYLOR, offset_ray_origin},
     sampler::Draws,
     simd::{F32x8, M8},
     source::{DataError, SceneData},
@@ -149,8 +149,8 @@ enum LaneLight {
     /// A triangle of constant radiance: sampled in the SIMD lanes.
     Triangle,
     /// Another light (the environment, a punctual light, a textured emitter): sampled by
-    /// [`next_event`], the path's own, with this light draw.
-    Other((f32, f32)),
+    /// [`next_event`], the path's own, with this choice.
+    Other(LightChoice),
 }
 
 /// The Lambertian hits of one bounce of a wave, structure of arrays.
@@ -247,10 +247,10 @@ impl DiffuseWave {
             return Some(met);
         }
         let u_light = draws.get_2d_after(path.direction_dim());
-        let chosen = scene.light_distribution.sample_reusing(u_light.0);
+        let chosen = choose_light(scene, u_light);
         // A light sample that reads a texture, or of another kind, is taken by the path's
         // own next-event estimation, in `shade`.
-        let light = match chosen.map(|(i, _, _)| &scene.lights[i]) {
+        let light = match chosen.map(|c| &scene.lights[c.light]) {
             Some(&Light::Triangle {
                 p: v,
                 n,
@@ -283,10 +283,10 @@ impl DiffuseWave {
         put(&mut i.p, k, Vec3::from(met.s.p));
         i.u_dir[0][k] = u_dir.0;
         i.u_dir[1][k] = u_dir.1;
-        if let (Some((_, pmf, u_point)), Some((v, n, area2, two_sided, le))) = (chosen, light) {
-            i.pmf[k] = pmf;
-            i.u_point[0][k] = u_point;
-            i.u_point[1][k] = u_light.1;
+        if let (Some(choice), Some((v, n, area2, two_sided, le))) = (chosen, light) {
+            i.pmf[k] = choice.pmf;
+            i.u_point[0][k] = choice.u.0;
+            i.u_point[1][k] = choice.u.1;
             for (corner, at) in i.light_v.iter_mut().zip(v) {
                 put(corner, k, at);
             }
@@ -305,72 +305,15 @@ impl DiffuseWave {
             u_roulette,
             light: match (chosen, light) {
                 (_, Some(_)) => LaneLight::Triangle,
-                (Some(_), None) => LaneLight::Other(u_light),
+                (Some(choice), None) => LaneLight::Other(choice),
                 (None, _) => LaneLight::None,
             },
         });
         None
     }
 
-    /// The arithmetic of lane `k` (of `input`) as the one-path bounce does it:
-    /// [`PathState::shade`]'s for a Lambertian BSDF, with [`Light::sample`]'s for a
-    /// triangle light, with the very functions they call. The definition the SIMD lanes
-    /// of [`DiffuseWave::compute`] are held to.
-    #[cfg_attr(not(test), allow(dead_code))]
-    fn compute_lane(input: &Input, k: usize, out: &mut Output) {
-        let i = input;
-        let (wo, n, ng) = (get(&i.wo, k), get(&i.n, k), get(&i.ng, k));
-        let (base, beta) = (get(&i.base, k), get(&i.beta, k));
-
-        // Bsdf::sample: a cosine-weighted direction about the shading normal.
-        let frame = Frame::from_normal(n);
-        let wi = frame.to_world(cosine_hemisphere((i.u_dir[0][k], i.u_dir[1][k])));
-        let cos_i = diffuse_cosine(n, ng, wo, wi);
-        let pdf = cos_i.unwrap_or(0.0) * INV_PI;
-        let sampled = cos_i.is_some() && pdf > 0.0;
-        put(&mut out.wi, k, wi);
-        out.pdf[k] = pdf;
-        let beta_next = beta * base;
-        let goes_on = sampled && beta_next.is_finite() && beta_next.max_element() > 0.0;
-        out.goes_on |= (goes_on as u32) << k;
-        put(&mut out.beta_next, k, beta_next);
-        out.survive[k] = roulette_survival(beta_next);
-
-        // Light::sample of a triangle light: a uniform point on it.
-        let p = get(&i.p, k);
-        let su = safe_sqrt(i.u_point[0][k]);
-        let (b0, b1) = (1.0 - su, i.u_point[1][k] * su);
-        let b2 = 1.0 - b0 - b1;
-        let v = i.light_v.map(|c| get(&c, k));
-        let q = v[0] * b0 + v[1] * b1 + v[2] * b2;
-        let d = q - p;
-        let d2 = d.length_squared();
-        let wl = d / d2.sqrt();
-        let cos_l = -get(&i.light_n, k).dot(wl);
-        let two_sided = i.light_two_sided[k] != 0.0;
-        let faces = !(cos_l <= 0.0 && !two_sided || cos_l == 0.0);
-        let area2 = i.light_area2[k];
-        let light_pdf = d2 / (cos_l.abs() * 0.5 * area2);
-        let le = get(&i.light_le, k);
-        // Bsdf::eval and Bsdf::pdf towards the light, and the weight against BSDF sampling.
-        let cos_l_i = diffuse_cosine(n, ng, wo, wl);
-        let f_bsdf = if cos_l_i.is_some() {
-            base * INV_PI
-        } else {
-            Vec3::ZERO
-        };
-        let f = f_bsdf * wl.dot(n).abs();
-        let pdf_light = light_pdf * i.pmf[k];
-        let w = power_heuristic(pdf_light, cos_l_i.map_or(0.0, |c| c * INV_PI));
-        let lit =
-            area2 > 0.0 && d2 > 0.0 && faces && f.max_element() > 0.0 && le.max_element() > 0.0;
-        out.lit |= (lit as u32) << k;
-        put(&mut out.light_add, k, beta * f * le * (w / pdf_light));
-        put(&mut out.light_dir, k, wl);
-        put(&mut out.light_point, k, q);
-    }
-
-    /// [`DiffuseWave::compute_lane`] for all eight lanes at once.
+    /// The arithmetic of every lane at once; `tests::compute_lane` is that of one lane, as
+    /// the one-path bounce does it.
     #[inline(always)]
     fn compute(input: &Input, out: &mut Output) {
         let one = F32x8::splat(1.0);
@@ -471,12 +414,12 @@ impl DiffuseWave {
         t: &Tracer<D>,
         k: usize,
         at: (Vec3A, Vec3A),
-        u_light: (f32, f32),
+        choice: LightChoice,
         key: AlphaKey,
     ) -> Result<Option<Vec3>, DataError> {
         let i = &self.input;
         let bsdf = Bsdf::lambertian(get(&i.n, k), get(&i.ng, k), get(&i.base, k));
-        next_event(t, &bsdf, get(&i.wo, k), at, u_light, get(&i.beta, k), key)
+        next_event(t, &bsdf, get(&i.wo, k), at, choice, get(&i.beta, k), key)
     }
 
     /// Shades every hit taken, tracing their shadow rays, and ends their bounce as
@@ -511,8 +454,8 @@ impl DiffuseWave {
                         l += get(&o.light_add, k);
                     }
                 }
-                LaneLight::Other(u_light) => {
-                    if let Some(c) = self.other_light(t, k, (st.p, st.p_error), u_light, st.key)? {
+                LaneLight::Other(choice) => {
+                    if let Some(c) = self.other_light(t, k, (st.p, st.p_error), choice, st.key)? {
                         l += c;
                     }
                 }
@@ -554,6 +497,68 @@ impl DiffuseWave {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::{
+        bsdf::{cosine_hemisphere, diffuse_cosine},
+        integrator::roulette_survival,
+        math::{Frame, power_heuristic, safe_sqrt},
+    };
+
+    /// The arithmetic of lane `k` (of `input`) as the one-path bounce does it:
+    /// [`PathState::shade`]'s for a Lambertian BSDF, with [`Light::sample`]'s for a
+    /// triangle light, with the very functions they call. The definition the SIMD lanes
+    /// of [`DiffuseWave::compute`] are held to.
+    fn compute_lane(input: &Input, k: usize, out: &mut Output) {
+        let i = input;
+        let (wo, n, ng) = (get(&i.wo, k), get(&i.n, k), get(&i.ng, k));
+        let (base, beta) = (get(&i.base, k), get(&i.beta, k));
+
+        // Bsdf::sample: a cosine-weighted direction about the shading normal.
+        let frame = Frame::from_normal(n);
+        let wi = frame.to_world(cosine_hemisphere((i.u_dir[0][k], i.u_dir[1][k])));
+        let cos_i = diffuse_cosine(n, ng, wo, wi);
+        let pdf = cos_i.unwrap_or(0.0) * INV_PI;
+        let sampled = cos_i.is_some() && pdf > 0.0;
+        put(&mut out.wi, k, wi);
+        out.pdf[k] = pdf;
+        let beta_next = beta * base;
+        let goes_on = sampled && beta_next.is_finite() && beta_next.max_element() > 0.0;
+        out.goes_on |= (goes_on as u32) << k;
+        put(&mut out.beta_next, k, beta_next);
+        out.survive[k] = roulette_survival(beta_next);
+
+        // Light::sample of a triangle light: a uniform point on it.
+        let p = get(&i.p, k);
+        let su = safe_sqrt(i.u_point[0][k]);
+        let (b0, b1) = (1.0 - su, i.u_point[1][k] * su);
+        let b2 = 1.0 - b0 - b1;
+        let v = i.light_v.map(|c| get(&c, k));
+        let q = v[0] * b0 + v[1] * b1 + v[2] * b2;
+        let d = q - p;
+        let d2 = d.length_squared();
+        let wl = d / d2.sqrt();
+        let cos_l = -get(&i.light_n, k).dot(wl);
+        let two_sided = i.light_two_sided[k] != 0.0;
+        let faces = !(cos_l <= 0.0 && !two_sided || cos_l == 0.0);
+        let area2 = i.light_area2[k];
+        let light_pdf = d2 / (cos_l.abs() * 0.5 * area2);
+        let le = get(&i.light_le, k);
+        // Bsdf::eval and Bsdf::pdf towards the light, and the weight against BSDF sampling.
+        let cos_l_i = diffuse_cosine(n, ng, wo, wl);
+        let f_bsdf = if cos_l_i.is_some() {
+            base * INV_PI
+        } else {
+            Vec3::ZERO
+        };
+        let f = f_bsdf * wl.dot(n).abs();
+        let pdf_light = light_pdf * i.pmf[k];
+        let w = power_heuristic(pdf_light, cos_l_i.map_or(0.0, |c| c * INV_PI));
+        let lit =
+            area2 > 0.0 && d2 > 0.0 && faces && f.max_element() > 0.0 && le.max_element() > 0.0;
+        out.lit |= (lit as u32) << k;
+        put(&mut out.light_add, k, beta * f * le * (w / pdf_light));
+        put(&mut out.light_dir, k, wl);
+        put(&mut out.light_point, k, q);
+    }
 
     /// A small deterministic generator (splitmix64).
     struct Numbers(u64);
@@ -638,12 +643,10 @@ mod tests {
                     6 => [p, v[1], v[2]],
                     _ => v,
                 };
-                let cross = (v[1] - v[0]).cross(v[2] - v[0]);
-                let area2 = cross.length();
-                let ln = if area2 > 0.0 {
-                    cross / area2
-                } else {
-                    Vec3::ZERO
+                let Light::Triangle { n: ln, area2, .. } =
+                    Light::triangle(v, [glam::Vec2::ZERO; 3], 0, false)
+                else {
+                    unreachable!("Light::triangle makes a triangle light")
                 };
                 for (c, at) in input.light_v.iter_mut().zip(v) {
                     put(c, k, at);
@@ -656,7 +659,7 @@ mod tests {
             let (mut simd, mut lanes) = (Output::default(), Output::default());
             DiffuseWave::compute(&input, &mut simd);
             for k in 0..LANES {
-                DiffuseWave::compute_lane(&input, k, &mut lanes);
+                compute_lane(&input, k, &mut lanes);
             }
             assert_eq!(simd.goes_on, lanes.goes_on, "round {round}");
             assert_eq!(simd.lit, lanes.lit, "round {round}");

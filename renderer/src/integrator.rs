@@ -20,6 +20,7 @@ use crate::{
     ray::Ray,
     render::RenderSettings,
     sampler::{Draws, PIXEL_DIM, SampleKey, Sampler},
+    scene::SceneHeader,
     source::{DataError, SceneData},
     trace::{AlphaKey, Tracer, shadow_ray},
 };
@@ -426,7 +427,8 @@ impl PathState {
         };
         let next = bsdf.sample(wo, u_lobe, u_dir);
         if !bsdf.is_pure_delta()
-            && let Some(c) = next_event(t, &bsdf, wo, (s.p, s.p_error), u_light, beta, key)?
+            && let Some(choice) = choose_light(t.scene, u_light)
+            && let Some(c) = next_event(t, &bsdf, wo, (s.p, s.p_error), choice, beta, key)?
         {
             l += c;
         }
@@ -513,26 +515,44 @@ pub(crate) fn roulette_survival(beta: Vec3) -> f32 {
     (beta.max_element() / ROULETTE_THROUGHPUT).min(ROULETTE_MAX_SURVIVAL)
 }
 
+/// The light a 2D light draw `u` picks for next-event estimation: its index, its
+/// probability, and the draw that places the point on it (the part of `u.0` the choice did
+/// not use, then `u.1`); `None` when the scene has no light.
+#[inline(always)]
+pub(crate) fn choose_light(scene: &SceneHeader, u: (f32, f32)) -> Option<LightChoice> {
+    let (i, pmf, u_point) = scene.light_distribution.sample_reusing(u.0)?;
+    Some(LightChoice {
+        light: i,
+        pmf,
+        u: (u_point, u.1),
+    })
+}
+
+/// See [`choose_light`].
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LightChoice {
+    pub light: usize,
+    pub pmf: f32,
+    pub u: (f32, f32),
+}
+
 /// Next-event estimation at the surface point `p` (with its rounding error bound) for a
-/// path of throughput `beta`: the light `u_light` picks (and the point on it), weighted
-/// against BSDF sampling; `None` when it adds nothing (no light, a light facing away or
-/// blocked).
+/// path of throughput `beta`: the light `choice` picked (and the point on it), weighted
+/// against BSDF sampling; `None` when it adds nothing (a light facing away or blocked).
 #[inline(always)]
 pub(crate) fn next_event<D: SceneData>(
     t: &Tracer<D>,
     bsdf: &Bsdf,
     wo: Vec3,
     (p, p_error): (Vec3A, Vec3A),
-    u_light: (f32, f32),
+    choice: LightChoice,
     beta: Vec3,
     key: AlphaKey,
 ) -> Result<Option<Vec3>, DataError> {
     let scene = t.scene;
-    let Some((li, pmf, u_point)) = scene.light_distribution.sample_reusing(u_light.0) else {
-        return Ok(None);
-    };
-    let light = &scene.lights[li];
-    let Some(ls) = light.sample(scene, t.data, Vec3::from(p), (u_point, u_light.1))? else {
+    let pmf = choice.pmf;
+    let light = &scene.lights[choice.light];
+    let Some(ls) = light.sample(scene, t.data, Vec3::from(p), choice.u)? else {
         return Ok(None);
     };
     let ns = bsdf.shading_normal();
