@@ -36,8 +36,9 @@ What it does
 3. Traces each set with Embree on one core and times it, then runs
    `magg-host bench rays` on the same files on the same core, and prints one markdown
    table comparing them (also written to OUT/embree-table.md, and every figure to
-   OUT/embree-results.json), the BVH build times, and up to 5 example rays per set that
-   Embree hits and magg misses.
+   OUT/embree-results.json), the BVH build times, up to 5 example rays per set that
+   Embree hits and magg misses, and the CPU by family, model and widest vector
+   instructions (Embree picks its code for the CPU; magg is built for x86-64-v3).
 
 File formats (all little-endian, no header)
 -------------------------------------------
@@ -104,10 +105,10 @@ script says so and prints the Embree figures alone.
 import argparse
 import gc
 import hashlib
+import importlib.util
 import json
 import math
 import os
-import platform
 import shutil
 import struct
 import subprocess
@@ -675,6 +676,15 @@ def pct(share):
     return "—" if share is None else f"{100 * share:.4f}%"
 
 
+def cpu_identity() -> str:
+    """The processor, as bench/peers/mitsuba.py describes it (model, family, model number,
+    stepping, widest vector instructions): a hypervisor may show different CPUs by one name."""
+    spec = importlib.util.spec_from_file_location("magg_peer_mitsuba", HERE / "mitsuba.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.cpu_identity()
+
+
 def table(rows, build, triangles):
     head = ("| set | rays | hit (Embree) | Embree best Mrays/s | Embree median Mrays/s "
             "| magg best Mrays/s | magg cache best Mrays/s | magg/Embree (best) "
@@ -906,15 +916,16 @@ def main():
                          "note": "build_seconds of each magg invocation"}
     for row in rows:
         del row["_hit"]
-    md = table(rows, build, len(tris)) + examples_text(rows)
+    md = (table(rows, build, len(tris)) + examples_text(rows)
+          + f"\nCPU: {cpu_identity()} (Embree picks its code for the CPU it runs on: AVX-512 "
+          "where there is AVX-512; magg is built for x86-64-v3 everywhere).\n")
     if magg_error:
         md += f"\nmagg: {magg_error}\n"
     print(md)
     (out / "embree-table.md").write_text(md)
     results = {
         "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "cpu": next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo")
-                     if l.startswith("model name")), platform.processor()),
+        "cpu": cpu_identity(),
         "core": args.core, "repeat": args.repeat, "quick": args.quick, "robust": args.robust,
         "embree_info": info, "numpy": np.__version__,
         "mesh": {"file": mesh_path.name, "params": mesh_params, "triangles": len(tris),
