@@ -916,8 +916,9 @@ def main():
                          "note": "build_seconds of each magg invocation"}
     for row in rows:
         del row["_hit"]
+    cpu = cpu_identity()
     md = (table(rows, build, len(tris)) + examples_text(rows)
-          + f"\nCPU: {cpu_identity()} (Embree picks its code for the CPU it runs on: AVX-512 "
+          + f"\nCPU: {cpu} (Embree picks its code for the CPU it runs on: AVX-512 "
           "where there is AVX-512; magg is built for x86-64-v3 everywhere).\n")
     if magg_error:
         md += f"\nmagg: {magg_error}\n"
@@ -925,7 +926,7 @@ def main():
     (out / "embree-table.md").write_text(md)
     results = {
         "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "cpu": cpu_identity(),
+        "cpu": cpu,
         "core": args.core, "repeat": args.repeat, "quick": args.quick, "robust": args.robust,
         "embree_info": info, "numpy": np.__version__,
         "mesh": {"file": mesh_path.name, "params": mesh_params, "triangles": len(tris),

@@ -761,7 +761,7 @@ def build_tables(rows: list[dict], renderers: list[tuple[str, str]], meta: dict)
     lines.append("")
     lines.append("Path lengths: " + "; ".join(f"{k}: {v}" for k, v in meta["depth"].items()) + ".")
     lines.append("")
-    wide = "AVX-512" in meta["machine"] and "no AVX-512" not in meta["machine"]
+    wide = meta["avx512"]
     lines.append("Vector width: Mitsuba's LLVM kernels are compiled for this CPU, "
                  + ("16 lanes (AVX-512)" if wide else "8 lanes (no AVX-512)")
                  + "; magg is built for x86-64-v3 (8-lane AVX2) on every CPU. Ratios against "
@@ -805,29 +805,37 @@ def parse_args() -> argparse.Namespace:
     return a
 
 
-def cpu_identity() -> str:
+def cpu_fields() -> dict[str, str]:
+    """The first processor's fields in /proc/cpuinfo (empty where it cannot be read)."""
+    try:
+        first = Path("/proc/cpuinfo").read_text().split("\n\n", 1)[0]
+    except OSError:
+        return {}
+    return {k.strip(): v.strip() for k, _, v in (l.partition(":") for l in first.splitlines())}
+
+
+def has_avx512(fields: dict[str, str]) -> bool:
+    return "avx512f" in fields.get("flags", "").split()
+
+
+def cpu_identity(fields: dict[str, str] | None = None) -> str:
     """The processor as /proc/cpuinfo tells it: its model name, family, model and stepping
     (a hypervisor may show every AMD EPYC by one name), and its widest vector instructions.
     Mitsuba's LLVM variants compile their kernels for the CPU they run on (Dr.Jit's kernels
     here carry `"target-cpu"="znver3"` and `-avx512f`): 16 lanes with AVX-512, 8 without.
     magg and the other peers are built for one instruction set. So a ratio against Mitsuba
     depends on whether the CPU has AVX-512; compare ratios only across like CPUs."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
+    f = cpu_fields() if fields is None else fields
+    if not f:
         return platform.processor() or "unknown CPU"
-    first = text.split("\n\n", 1)[0]
-    field = lambda name: next((l.split(":", 1)[1].strip() for l in first.splitlines()
-                               if l.split(":", 1)[0].strip() == name), "")
-    flags = set(field("flags").split())
-    vector = ("AVX-512" if "avx512f" in flags else "AVX2, no AVX-512" if "avx2" in flags
-              else "no AVX2")
-    ident = ", ".join(f"{k} {field(k)}" for k in ("cpu family", "model", "stepping") if field(k))
-    return f"{field('model name') or 'unknown CPU'}: {ident}; {vector}"
+    vector = ("AVX-512" if has_avx512(f) else "AVX2, no AVX-512"
+              if "avx2" in f.get("flags", "").split() else "no AVX2")
+    ident = ", ".join(f"{k} {f[k]}" for k in ("cpu family", "model", "stepping") if f.get(k))
+    return f"{f.get('model name') or 'unknown CPU'}: {ident}; {vector}"
 
 
-def machine_note() -> str:
-    return f"{os.cpu_count()} cores ({cpu_identity()})"
+def machine_note(fields: dict[str, str] | None = None) -> str:
+    return f"{os.cpu_count()} cores ({cpu_identity(fields)})"
 
 
 def main() -> None:
@@ -926,11 +934,13 @@ def main() -> None:
         magg_version = v.stdout.strip() or None
     llvm_pkg = subprocess.run(["dpkg-query", "-W", "-f=${Version}", "libllvm19"],
                               capture_output=True, text=True).stdout.strip()
+    cpu = cpu_fields()
     meta = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "scene": str(args.scene), "reference": str(args.reference),
         "width": width, "height": height, "spp": args.spp_list, "repeat": args.repeat,
-        "seed": args.seed, "machine": machine_note(), "platform": platform.platform(),
+        "seed": args.seed, "machine": machine_note(cpu), "avx512": has_avx512(cpu),
+        "platform": platform.platform(),
         "versions": {"mitsuba": mi.__version__, "drjit": dr.__version__, "numpy": np.__version__,
                      "python": platform.python_version(), "libllvm19": llvm_pkg,
                      "DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH"),

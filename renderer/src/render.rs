@@ -946,6 +946,22 @@ mod tests {
         p.iter().flatten().map(|v| v.to_bits()).collect()
     }
 
+    /// Renders `rect` of `scene` both ways ([`both_ways_in`]), asserts the same bits and
+    /// the same ray counts (`what` names the case), and returns the pixels.
+    fn agree_both_ways(
+        scene: (SceneHeader, MemoryData, Camera),
+        settings: &RenderSettings,
+        rect: Rect,
+        room: usize,
+        what: &str,
+    ) -> Vec<[f32; 3]> {
+        let ((pixels, stats, _), (c_pixels, c_stats, _, _)) =
+            both_ways_in(scene, settings, rect, room);
+        assert_eq!(bits(&pixels), bits(&c_pixels), "{what}");
+        assert_eq!(stats, c_stats, "{what}");
+        pixels
+    }
+
     #[test]
     fn coherent_rays_give_the_same_bits_and_fetch_less() {
         let settings = RenderSettings {
@@ -1001,9 +1017,13 @@ mod tests {
             ..base.clone()
         };
         for (settings, room) in [(&adaptive, 3), (&whitted, 3), (&base, 1)] {
-            let ((pixels, stats, _), (c_pixels, c_stats, _, _)) = both_ways(settings, rect, room);
-            assert_eq!(bits(&pixels), bits(&c_pixels), "{settings:?} room {room}");
-            assert_eq!(stats, c_stats, "{settings:?} room {room}");
+            agree_both_ways(
+                scene(),
+                settings,
+                rect,
+                room,
+                &format!("{settings:?} room {room}"),
+            );
         }
     }
 
@@ -1023,10 +1043,7 @@ mod tests {
             width: 30,
             height: 3,
         };
-        let ((pixels, stats, _), (c_pixels, c_stats, _, _)) =
-            both_ways_in(sky_scene(), &settings, rect, 4);
-        assert_eq!(bits(&pixels), bits(&c_pixels));
-        assert_eq!(stats, c_stats);
+        let pixels = agree_both_ways(sky_scene(), &settings, rect, 4, "sky and point light");
         let (lit, dark) = (bits(&pixels), both_ways(&settings, rect, 4).0.0);
         assert_ne!(lit, bits(&dark), "the sky and the point light add light");
     }
