@@ -8,11 +8,11 @@
 
 use std::{
     sync::{Arc, Mutex, atomic::Ordering},
-    time::Duration,
+    time::{Duration, SystemTime},
 };
 
 use protocol::{ConnectionKind, Frame, FrameReader, FrameWriter, Message, NodeId, Role};
-use tokio::sync::mpsc;
+use tokio::{sync::mpsc, time::Instant};
 
 use super::{
     CONTROL_SILENCE_LIMIT, Delivery, FLAG_RELATIVE_TIMES, Fabric, HEARTBEAT_INTERVAL,
@@ -220,18 +220,53 @@ impl Fabric {
     }
 }
 
-/// Writes what the runtime queues for one connection, and a heartbeat whenever it has been
-/// quiet for [`HEARTBEAT_INTERVAL`], until the queue closes or the peer stops reading.
+/// When a connection that last sent at `last` sends its heartbeat: on the first beat of the
+/// system clock (a whole multiple of [`HEARTBEAT_INTERVAL`] since the epoch) at least half an
+/// interval after `last`, so a quiet connection hears from its peer every half to one and a
+/// half intervals.
+///
+/// Why beats of a shared clock: a cluster on one machine holds hundreds of connections, most
+/// of them quiet while a few render nodes work. With a timer per connection running from its
+/// own last frame, their heartbeats were spread over each second, and every one woke a writer
+/// and a reader in two processes (about 1,500 context switches a second on 86 processes,
+/// each evicting some of a rendering thread's caches). On shared beats every process wakes
+/// once a beat for all its quiet connections, and its peers read them in one wake-up.
+fn next_beat(last: Instant, now: Instant, since_epoch: Duration) -> Instant {
+    let period = HEARTBEAT_INTERVAL.as_nanos();
+    let phase = since_epoch.as_nanos() % period;
+    let mut beat = now + Duration::from_nanos(((period - phase) % period) as u64);
+    while beat < last + HEARTBEAT_INTERVAL / 2 {
+        beat += HEARTBEAT_INTERVAL;
+    }
+    beat
+}
+
+/// [`next_beat`] for a connection that sends now.
+fn beat_after_sending() -> Instant {
+    let now = Instant::now();
+    let since_epoch = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .unwrap_or_default();
+    next_beat(now, now, since_epoch)
+}
+
+/// Writes what the runtime queues for one connection, and a heartbeat on each beat it has
+/// been quiet for ([`next_beat`]), until the queue closes or the peer stops reading.
 async fn write_until_closed(
     mut writer: FrameWriter<tokio::net::tcp::OwnedWriteHalf>,
     mut queue: mpsc::UnboundedReceiver<Frame>,
     heartbeat: Frame,
 ) {
+    let beat = tokio::time::sleep_until(beat_after_sending());
+    tokio::pin!(beat);
     loop {
-        let frame = match tokio::time::timeout(HEARTBEAT_INTERVAL, queue.recv()).await {
-            Ok(Some(f)) => f,
-            Ok(None) => break,
-            Err(_) => heartbeat.clone(),
+        let frame = tokio::select! {
+            biased;
+            f = queue.recv() => match f {
+                Some(f) => f,
+                None => break,
+            },
+            _ = &mut beat => heartbeat.clone(),
         };
         // Whatever else is queued by now goes out in the same write.
         let mut sent = writer.put(&frame).await;
@@ -243,6 +278,7 @@ async fn write_until_closed(
         if sent.is_err() || writer.flush().await.is_err() {
             break;
         }
+        beat.as_mut().reset(beat_after_sending());
     }
 }
 
@@ -325,6 +361,36 @@ mod tests {
         f.header.first_ns = first_ns;
         f.header.last_ns = last_ns;
         f
+    }
+
+    /// Heartbeats fall on whole beats of the system clock, half an interval to one and a half
+    /// after the connection last sent: quiet connections of every process beat together, and
+    /// a peer never waits much longer than an interval, far within the silence limits.
+    #[test]
+    fn heartbeats_fall_on_shared_beats_within_one_and_a_half_intervals() {
+        let i = HEARTBEAT_INTERVAL;
+        let now = Instant::now();
+        for phase_ms in [0u64, 1, 250, 499, 500, 501, 999] {
+            let phase = Duration::from_millis(phase_ms) * i.as_millis() as u32 / 1000;
+            // An epoch reading a whole number of intervals, plus the phase.
+            let since_epoch = i * 1_000_000 + phase;
+            let beat = next_beat(now, now, since_epoch);
+            let wait = beat - now;
+            assert!(
+                wait >= i / 2 && wait < i * 3 / 2,
+                "phase {phase:?}: waits {wait:?}"
+            );
+            // On a beat: the clock then reads a whole number of intervals.
+            assert_eq!(
+                (since_epoch + wait).as_nanos() % i.as_nanos(),
+                0,
+                "phase {phase:?}"
+            );
+        }
+        // Sent a while ago: the next beat that is at least half an interval after it.
+        let last = now - i * 3;
+        assert_eq!(next_beat(last, now, i * 7), now);
+        assert!(CONTROL_SILENCE_LIMIT > i * 3 && LINK_SILENCE_LIMIT > i * 3);
     }
 
     #[test]
