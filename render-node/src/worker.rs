@@ -1,6 +1,7 @@
 //! The rendering threads of a render node: ask the host for a subscreen, render it scan line
-//! by scan line, send the lines to the fork node (a few at a time), ask again. They run apart
-//! from the node's networking, which keeps forwarding other nodes' packets meanwhile.
+//! by scan line, send the lines to the fork node (a few at a time, of one subscreen or
+//! several), ask again. They run apart from the node's networking, which keeps forwarding
+//! other nodes' packets meanwhile.
 
 use std::{
     collections::HashMap,
@@ -35,6 +36,8 @@ pub enum WorkerError {
         #[source]
         source: RenderError,
     },
+    #[error("sending the pixels of finished subscreens: {0}")]
+    Send(#[from] fabric::SendError),
 }
 
 /// What stops one subscreen: data that could not be had, or pixels that could not be sent.
@@ -216,18 +219,30 @@ impl Worker {
         let mut reader = self.cache.reader();
         let touched = Touched::new(self.scene.chunks.len(), self.scene.tile_count as usize);
         let mut finished = None;
-        let mut ahead = None;
+        let mut ahead: Option<Asked> = None;
+        let mut unsent = Unsent::new();
         loop {
             let t0 = self.stats.idle.begin();
+            // Rows held must not wait on an answer that may wait for them (the host answers
+            // the last requests once every row is in).
+            if ahead.as_ref().is_none_or(|asked| !asked.is_finished()) {
+                self.send_rows(&mut unsent)?;
+            }
             // The answer to the request sent ahead, unless there was none or it had nothing.
             let next = match ahead.take().map(|asked| self.answer(asked)).transpose()? {
-                Some(Next::NothingAhead) | None => self.answer(self.ask(finished.take(), false))?,
+                Some(Next::NothingAhead) | None => {
+                    self.send_rows(&mut unsent)?;
+                    self.answer(self.ask(finished.take(), false))?
+                }
                 Some(next) => next,
             };
             self.stats.idle.end(t0);
             let (id, active) = match next {
                 Next::Subscreen(id, active) => (id, active),
-                Next::Done => break,
+                Next::Done => {
+                    self.send_rows(&mut unsent)?;
+                    break;
+                }
                 Next::NothingAhead => {
                     return Err(WorkerError::Answer(
                         "nothing ahead, to a request that was not ahead".into(),
@@ -242,8 +257,14 @@ impl Worker {
             let cpu0 = fabric::clock::thread_cpu_time();
             // This subscreen's counts alone: its record, then the node's totals.
             let mut trace_stats = TraceStats::default();
-            let result =
-                self.render_subscreen(&mut reader, &touched, id, &active, &mut trace_stats);
+            let result = self.render_subscreen(
+                &mut reader,
+                &touched,
+                id,
+                &active,
+                &mut unsent,
+                &mut trace_stats,
+            );
             self.active.lock().expect("active lock").remove(&id);
             result.map_err(|source| WorkerError::Render { id, source })?;
             let record = record(id, rect, &trace_stats, &reader, &touched, cpu0);
@@ -330,12 +351,12 @@ impl Worker {
         touched: &Touched,
         id: u32,
         active: &Active,
+        unsent: &mut Unsent,
         trace_stats: &mut renderer::trace::TraceStats,
     ) -> Result<(), RenderError> {
         let rect = active.rect;
         let settings = &self.job.settings;
         let mut pixels: Vec<[f32; 3]> = Vec::new();
-        let mut unsent = Unsent::new();
         loop {
             // Coherent rays (the host asks for them only with a cache smaller than the scene)
             // want many paths in flight: as many rows are taken at once as fill a batch. One
@@ -394,12 +415,12 @@ impl Worker {
                     pixels.push(px);
                 }
             }
-            unsent.add(band.y, &pixels);
+            unsent.add(id, rect, band.y, &pixels);
             if unsent.due() {
-                self.send_rows(id, rect, &mut unsent)?;
+                self.send_rows(unsent)?;
             }
         }
-        self.send_rows(id, rect, &mut unsent)
+        Ok(())
     }
 
     /// Whether the paths of this node's next rows may wait for data ([`CoherentRays`]). Asked
@@ -424,44 +445,76 @@ impl Worker {
             && self.cache.shared_segments() as usize >= live_cards
     }
 
-    /// Sends the rows rendered and not yet sent, in one frame, to the fork node.
-    fn send_rows(&self, id: u32, rect: Rect, unsent: &mut Unsent) -> Result<(), RenderError> {
-        if unsent.pixels.is_empty() {
-            return Ok(());
+    /// Sends the rows rendered and not yet sent to the fork node: a frame for each
+    /// subscreen's run of rows, queued together, so that they leave in one write and every
+    /// process on their way wakes once for all of them.
+    fn send_rows(&self, unsent: &mut Unsent) -> Result<(), fabric::SendError> {
+        for run in unsent.take() {
+            let rows = run.pixels.len() as u64 / run.rect.width.max(1) as u64;
+            let words = || bytemuck::cast_slice::<[f32; 3], u32>(&run.pixels).into();
+            let msg = Message::Pixels {
+                subscreen: run.subscreen,
+                y: run.y,
+                x: run.rect.x,
+                width: run.rect.width,
+            };
+            // To the fork node serving this node now: another card's, once its own is lost.
+            // While a lost fork node's routes change, the one asked for may have just been
+            // cut off; asked again, the serving fork node is one that can be reached.
+            let fork = || {
+                self.fabric
+                    .serving_fork(self.fabric.me())
+                    .unwrap_or(self.fork)
+            };
+            let mut sent = self.fabric.send(fork(), &msg, words(), 0);
+            if matches!(sent, Err(fabric::SendError::NoRoute { .. })) {
+                sent = self.fabric.send(fork(), &msg, words(), 0);
+            }
+            match sent {
+                Ok(()) => {}
+                Err(e @ fabric::SendError::NoRoute { .. }) => {
+                    // Rows lost on their way, as with a fork node lost while they cross it:
+                    // the host renders again the rows of this node's subscreens that never
+                    // came.
+                    tracing::warn!(
+                        "rows {}.. of subscreen {} not sent ({e}); the host renders them again",
+                        run.y,
+                        run.subscreen
+                    );
+                    continue;
+                }
+                Err(e) => return Err(e),
+            }
+            self.stats.rows.fetch_add(rows, Ordering::Relaxed);
+            self.stats
+                .pixels
+                .fetch_add(rows * run.rect.width as u64, Ordering::Relaxed);
         }
-        let rows = unsent.pixels.len() as u64 / rect.width.max(1) as u64;
-        let words: Box<[u32]> = bytemuck::cast_slice::<[f32; 3], u32>(&unsent.pixels).into();
-        let msg = Message::Pixels {
-            subscreen: id,
-            y: unsent.y,
-            x: rect.x,
-            width: rect.width,
-        };
-        unsent.clear();
-        // To the fork node serving this node now: another card's, once its own is lost.
-        let fork = self
-            .fabric
-            .serving_fork(self.fabric.me())
-            .unwrap_or(self.fork);
-        self.fabric.send(fork, &msg, words, 0)?;
-        self.stats.rows.fetch_add(rows, Ordering::Relaxed);
-        self.stats
-            .pixels
-            .fetch_add(rows * rect.width as u64, Ordering::Relaxed);
         Ok(())
     }
 }
 
-/// Rows of a subscreen rendered and not yet sent. Rows go in one frame (a few rows of a
-/// small subscreen are a few hundred bytes, and each frame costs every process it crosses
-/// a wake-up and a write), but never wait long: the host keeps what arrived when a render
-/// stops, and shows progress by it.
+/// Rows rendered and not yet sent, of this subscreen and of those finished before it. They
+/// go together (a few rows of a small subscreen are a few hundred bytes, and each sending
+/// costs every process on the way a wake-up and a write; the paper's default of eight
+/// subscreens a render node makes them small when few nodes work), but never wait long: the
+/// host keeps what arrived when a render stops, and shows progress by it. A node lost with
+/// rows unsent loses nothing: the host renders again the rows of its subscreens that never
+/// came.
 struct Unsent {
-    /// The first unsent row.
-    y: u32,
-    pixels: Vec<[f32; 3]>,
+    runs: Vec<Run>,
+    /// Pixels in all runs.
+    pixels: usize,
     /// When the first unsent row was added.
     since: Option<Instant>,
+}
+
+/// Consecutive rows of one subscreen, from row `y`.
+struct Run {
+    subscreen: u32,
+    rect: Rect,
+    y: u32,
+    pixels: Vec<[f32; 3]>,
 }
 
 /// Unsent rows go once they fill this many pixels...
@@ -472,29 +525,41 @@ const LONGEST_HOLD: Duration = Duration::from_millis(250);
 impl Unsent {
     fn new() -> Unsent {
         Unsent {
-            y: 0,
-            pixels: Vec::new(),
+            runs: Vec::new(),
+            pixels: 0,
             since: None,
         }
     }
 
-    /// Adds rows that follow the unsent ones (rows are rendered in order, top down).
-    fn add(&mut self, y: u32, pixels: &[[f32; 3]]) {
-        if self.since.is_none() {
-            self.y = y;
-            self.since = Some(Instant::now());
+    /// Adds rows from row `y` of `subscreen` (a subscreen's rows are rendered in order, top
+    /// down: rows that follow its last run extend that run).
+    fn add(&mut self, subscreen: u32, rect: Rect, y: u32, pixels: &[[f32; 3]]) {
+        self.since.get_or_insert_with(Instant::now);
+        self.pixels += pixels.len();
+        if let Some(run) = self.runs.last_mut()
+            && run.subscreen == subscreen
+            && run.y + (run.pixels.len() / rect.width.max(1) as usize) as u32 == y
+        {
+            run.pixels.extend_from_slice(pixels);
+            return;
         }
-        self.pixels.extend_from_slice(pixels);
+        self.runs.push(Run {
+            subscreen,
+            rect,
+            y,
+            pixels: pixels.to_vec(),
+        });
     }
 
     fn due(&self) -> bool {
-        self.pixels.len() >= PIXELS_PER_FRAME
-            || self.since.is_some_and(|t| t.elapsed() >= LONGEST_HOLD)
+        self.pixels >= PIXELS_PER_FRAME || self.since.is_some_and(|t| t.elapsed() >= LONGEST_HOLD)
     }
 
-    fn clear(&mut self) {
-        self.pixels.clear();
+    /// The runs, in the order they were rendered; none are left.
+    fn take(&mut self) -> Vec<Run> {
+        self.pixels = 0;
         self.since = None;
+        std::mem::take(&mut self.runs)
     }
 }
 
@@ -536,20 +601,39 @@ mod tests {
     use super::*;
 
     #[test]
-    fn unsent_rows_wait_until_a_frame_is_full_or_the_first_has_waited_long() {
+    fn unsent_rows_of_several_subscreens_wait_until_full_or_the_first_has_waited_long() {
+        let a = Rect {
+            x: 0,
+            y: 0,
+            width: 100,
+            height: 50,
+        };
+        let b = Rect { x: 100, ..a };
         let mut u = Unsent::new();
         assert!(!u.due(), "nothing to send");
-        u.add(7, &[[1.0; 3]; 100]);
-        u.add(8, &[[2.0; 3]; 100]);
-        assert_eq!(u.y, 7, "the frame starts at the first unsent row");
-        assert_eq!(u.pixels.len(), 200);
+        u.add(3, a, 7, &[[1.0; 3]; 100]);
+        u.add(3, a, 8, &[[2.0; 3]; 200]);
+        // Another subscreen, then rows of the first that do not follow its run.
+        u.add(4, b, 0, &[[3.0; 3]; 100]);
+        u.add(3, a, 20, &[[4.0; 3]; 100]);
         assert!(!u.due());
-        u.add(9, &vec![[3.0; 3]; PIXELS_PER_FRAME]);
+        let runs = u.take();
+        let shape: Vec<_> = runs
+            .iter()
+            .map(|r| (r.subscreen, r.rect.x, r.y, r.pixels.len()))
+            .collect();
+        assert_eq!(
+            shape,
+            [(3, 0, 7, 300), (4, 100, 0, 100), (3, 0, 20, 100)],
+            "runs in the order rendered, consecutive rows of one subscreen in one"
+        );
+        assert_eq!(runs[0].pixels[150], [2.0; 3]);
+        assert!(!u.due() && u.take().is_empty(), "taken: nothing left");
+        u.add(5, a, 0, &vec![[5.0; 3]; PIXELS_PER_FRAME]);
         assert!(u.due(), "full");
-        u.clear();
+        u.take();
+        u.add(5, a, 41, &[[6.0; 3]; 10]);
         assert!(!u.due());
-        u.add(10, &[[4.0; 3]; 10]);
-        assert_eq!(u.y, 10, "a new frame starts after a clear");
         u.since = Some(Instant::now() - LONGEST_HOLD);
         assert!(u.due(), "waited long enough");
     }
