@@ -894,7 +894,10 @@ fn render(args: RenderArgs) -> Result<()> {
             at_work: args.at_work,
         };
         let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let rt = runtime()?;
+        // One thread for the host's networking, as for the nodes': its work is small and
+        // comes in bursts from many connections, and a second worker only adds wake-ups on
+        // cores the render nodes use (heavy work goes to the blocking pool).
+        let rt = magg::node_runtime()?;
         let c = cancel.clone();
         rt.spawn(async move {
             let signal = magg::stop_signal().await;
