@@ -240,16 +240,38 @@ pub async fn render_on_cluster(
     check_settings(rc)?;
     let t0 = Instant::now();
 
-    // The host reads the scene from disk.
-    let (desc, warnings) =
-        crate::scene_source::read_scene(&rc.scene, rc.environment).map_err(RenderError::Load)?;
-    for w in &warnings {
-        tracing::warn!("{}: {w}", rc.scene);
+    // The host reads the scene from disk while the cluster starts (both take a good part of
+    // a second on a scene of a million triangles). A file that cannot be opened is reported
+    // before any process starts.
+    if let crate::scene_source::SceneSource::File(path) = &rc.scene
+        && let Err(e) = std::fs::File::open(path)
+    {
+        let e = scene_io::LoadError::Io {
+            path: path.clone(),
+            source: e,
+        };
+        return Err(RenderError::Load(e).into());
     }
+    let reading = {
+        let (scene, environment) = (rc.scene.clone(), rc.environment.clone());
+        tokio::task::spawn_blocking(move || crate::scene_source::read_scene(&scene, environment))
+    };
     let t = config.cluster.topology.clone();
     tracing::info!("starting {}", t.summary());
     let mut cluster = start(&config.cluster, &|_, _| {}).await?;
-    let result = drive(config, &mut cluster, desc, cancel, t0).await;
+    // A panic while reading is the reader's bug: it goes on as a panic here.
+    let read = reading
+        .await
+        .unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
+    let result = match read.map_err(|e| ClusterRenderError::from(RenderError::Load(e))) {
+        Ok((desc, warnings)) => {
+            for w in &warnings {
+                tracing::warn!("{}: {w}", rc.scene);
+            }
+            drive(config, &mut cluster, desc, cancel, t0).await
+        }
+        Err(e) => Err(e),
+    };
     let clean = cluster
         .shutdown(if result.is_ok() {
             "render done"
