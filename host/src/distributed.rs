@@ -253,7 +253,7 @@ pub async fn render_on_cluster(
         return Err(RenderError::Load(e).into());
     }
     let reading = {
-        let (scene, environment) = (rc.scene.clone(), rc.environment.clone());
+        let (scene, environment) = (rc.scene.clone(), rc.environment);
         tokio::task::spawn_blocking(move || crate::scene_source::read_scene(&scene, environment))
     };
     let t = config.cluster.topology.clone();
