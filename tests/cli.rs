@@ -181,6 +181,20 @@ fn mistakes_are_one_clear_line() {
     let junk = dir.join("junk.gltf");
     std::fs::write(&junk, b"this is not json").unwrap();
     expect_error(&["render", junk.to_str().unwrap()], &png, "junk.gltf");
+    // At the default log level as well: the cluster starts while the scene is read, and says
+    // so only once it has been read, so a scene that cannot be read is still one line.
+    let o = run(host()
+        .env_remove("MAGG_LOG")
+        .args(["render", junk.to_str().unwrap(), "-o"])
+        .arg(&png));
+    let err = stderr(&o);
+    assert!(!o.status.success() && err.contains("junk.gltf"), "{err}");
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "one line expected, got {err:?}"
+    );
+    assert!(!png.exists());
 }
 
 #[test]

@@ -257,21 +257,33 @@ pub async fn render_on_cluster(
         tokio::task::spawn_blocking(move || crate::scene_source::read_scene(&scene, environment))
     };
     let t = config.cluster.topology.clone();
-    tracing::info!("starting {}", t.summary());
-    let mut cluster = start(&config.cluster, &|_, _| {}).await?;
-    // A panic while reading is the reader's bug: it goes on as a panic here.
-    let read = reading
-        .await
-        .unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
-    let result = match read.map_err(|e| ClusterRenderError::from(RenderError::Load(e))) {
-        Ok((desc, warnings)) => {
-            for w in &warnings {
+    // Said once the scene is read, so that a scene that cannot be read is still one line
+    // of error, as when nothing was started.
+    let read = async {
+        // A panic while reading is the reader's bug: it goes on as a panic here.
+        let read = reading
+            .await
+            .unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
+        if let Ok((_, warnings)) = &read {
+            for w in warnings {
                 tracing::warn!("{}: {w}", rc.scene);
             }
-            drive(config, &mut cluster, desc, cancel, t0).await
+            tracing::info!("starting {}", t.summary());
         }
-        Err(e) => Err(e),
+        read.map_err(|e| ClusterRenderError::from(RenderError::Load(e)))
     };
+    let (started, read) = tokio::join!(start(&config.cluster, &|_, _| {}), read);
+    let (mut cluster, desc) = match (started, read) {
+        (Ok(cluster), Ok((desc, _))) => (cluster, desc),
+        // The scene's error first, as when it was read before anything started.
+        (Ok(cluster), Err(e)) => {
+            cluster.shutdown("the scene could not be read").await;
+            return Err(e);
+        }
+        (Err(_), Err(e)) => return Err(e),
+        (Err(e), Ok(_)) => return Err(e.into()),
+    };
+    let result = drive(config, &mut cluster, desc, cancel, t0).await;
     let clean = cluster
         .shutdown(if result.is_ok() {
             "render done"
