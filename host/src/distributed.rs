@@ -272,16 +272,25 @@ pub async fn render_on_cluster(
         }
         read.map_err(|e| ClusterRenderError::from(RenderError::Load(e)))
     };
-    let (started, read) = tokio::join!(start(&config.cluster, &|_, _| {}), read);
-    let (mut cluster, desc) = match (started, read) {
-        (Ok(cluster), Ok((desc, _))) => (cluster, desc),
-        // The scene's error first, as when it was read before anything started.
-        (Ok(cluster), Err(e)) => {
-            cluster.shutdown("the scene could not be read").await;
-            return Err(e);
+    let starting = start(&config.cluster, &|_, _| {});
+    tokio::pin!(starting, read);
+    let (mut cluster, desc) = tokio::select! {
+        // A scene that cannot be read ends the start at once (nodes started by hand may be
+        // long in joining); spawned nodes are killed with the half-formed cluster.
+        read = &mut read => {
+            let (desc, _) = read?;
+            (starting.await?, desc)
         }
-        (Err(_), Err(e)) => return Err(e),
-        (Err(e), Ok(_)) => return Err(e.into()),
+        started = &mut starting => {
+            let cluster = started?;
+            match read.await {
+                Ok((desc, _)) => (cluster, desc),
+                Err(e) => {
+                    cluster.shutdown("the scene could not be read").await;
+                    return Err(e);
+                }
+            }
+        }
     };
     let result = drive(config, &mut cluster, desc, cancel, t0).await;
     let clean = cluster
