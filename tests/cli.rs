@@ -195,6 +195,20 @@ fn mistakes_are_one_clear_line() {
         "one line expected, got {err:?}"
     );
     assert!(!png.exists());
+    // With nodes started by hand, it is reported at once, not once they have all joined.
+    let began = std::time::Instant::now();
+    let o = run(host()
+        .env("MAGG_SECRET", "a secret for a cluster that never forms")
+        .args(["render", junk.to_str().unwrap(), "--listen", "127.0.0.1:0"])
+        .args(["--topology", "tiny", "-o"])
+        .arg(&png));
+    let err = stderr(&o);
+    assert!(!o.status.success() && err.contains("junk.gltf"), "{err}");
+    assert!(
+        began.elapsed() < std::time::Duration::from_secs(30),
+        "waited {:?} for nodes that never came",
+        began.elapsed()
+    );
 }
 
 #[test]
