@@ -287,8 +287,9 @@ where
     })
 }
 
-/// A single-threaded async runtime for a node's networking (rendering runs on its own
-/// threads), as many processes share few cores.
+/// A single-threaded async runtime for the networking of a node or of the cluster's host
+/// (rendering runs on its own threads, heavy work in the blocking pool), as many processes
+/// share few cores.
 pub fn node_runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -224,8 +224,8 @@ impl Worker {
         loop {
             let t0 = self.stats.idle.begin();
             // Rows held must not wait on an answer that may wait for them (the host answers
-            // the last requests once every row is in).
-            if ahead.as_ref().is_none_or(|asked| !asked.is_finished()) {
+            // the last requests once every row is in); a request asked now is sent below.
+            if ahead.as_ref().is_some_and(|asked| !asked.is_finished()) {
                 self.send_rows(&mut unsent)?;
             }
             // The answer to the request sent ahead, unless there was none or it had nothing.
@@ -503,8 +503,6 @@ impl Worker {
 /// came.
 struct Unsent {
     runs: Vec<Run>,
-    /// Pixels in all runs.
-    pixels: usize,
     /// When the first unsent row was added.
     since: Option<Instant>,
 }
@@ -526,7 +524,6 @@ impl Unsent {
     fn new() -> Unsent {
         Unsent {
             runs: Vec::new(),
-            pixels: 0,
             since: None,
         }
     }
@@ -535,7 +532,6 @@ impl Unsent {
     /// down: rows that follow its last run extend that run).
     fn add(&mut self, subscreen: u32, rect: Rect, y: u32, pixels: &[[f32; 3]]) {
         self.since.get_or_insert_with(Instant::now);
-        self.pixels += pixels.len();
         if let Some(run) = self.runs.last_mut()
             && run.subscreen == subscreen
             && run.y + (run.pixels.len() / rect.width.max(1) as usize) as u32 == y
@@ -552,12 +548,12 @@ impl Unsent {
     }
 
     fn due(&self) -> bool {
-        self.pixels >= PIXELS_PER_FRAME || self.since.is_some_and(|t| t.elapsed() >= LONGEST_HOLD)
+        self.runs.iter().map(|r| r.pixels.len()).sum::<usize>() >= PIXELS_PER_FRAME
+            || self.since.is_some_and(|t| t.elapsed() >= LONGEST_HOLD)
     }
 
     /// The runs, in the order they were rendered; none are left.
     fn take(&mut self) -> Vec<Run> {
-        self.pixels = 0;
         self.since = None;
         std::mem::take(&mut self.runs)
     }
