@@ -1,9 +1,15 @@
 #!/usr/bin/env python3
-"""Issue 14's cluster targets, measured: whole-command wall times of the same render in one
+"""Issue 14's cluster targets, measured: wall times of the same render command in one
 process and on the 86-process cluster, runs of every configuration interleaved (so that load
 from elsewhere falls on all of them alike), the median of each, its ratio to in-process, and
 what the render nodes fetched and kept in memory of their own. Every image must be the same
 bytes as the in-process one; the script stops if one is not.
+
+Two times per run: from the command's start to its image written (when the output file got
+its final name: its modification time, read against the same clock; the issue's measure),
+and to the command's exit. On 86 processes the host writes the image before it collects the
+nodes' figures and stops them (about 0.1 s more); in one process little follows the image.
+The targets are judged on the first, as the issue words them; both are printed.
 
     python3 bench/cluster_targets.py [--runs 3] [--host target/release/magg-host]
         [--scene PATH] [--cornell PATH] [--with-tcp-5]
@@ -36,14 +42,19 @@ def find_scene():
 
 
 def render(host, args, out, stats):
+    """Runs one render; returns (seconds to the image written, seconds to exit, stats)."""
     cmd = [host, "render", "--quiet", *args, "-o", out, "--stats", stats]
-    t0 = time.monotonic()
+    # The file's modification time comes from the system clock: read the start on it too.
+    t0 = time.time_ns()
     p = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.monotonic() - t0
+    whole = (time.time_ns() - t0) / 1e9
     if p.returncode != 0:
         sys.exit(f"failed: {' '.join(cmd)}\n{p.stderr}")
+    to_image = (os.stat(out).st_mtime_ns - t0) / 1e9
+    if not 0 < to_image <= whole:
+        sys.exit(f"{out}: its modification time is not within the run (the clock moved?)")
     with open(stats) as f:
-        return wall, json.load(f)
+        return to_image, whole, json.load(f)
 
 
 def same_bytes(a, b):
@@ -96,25 +107,28 @@ def main():
                 key = (scene, name)
                 out = os.path.join(tmp, f"{scene}-{len(results[key])}-{abs(hash(name))}.png")
                 stats = os.path.join(tmp, "stats.json")
-                wall, st = render(a.host, args, out, stats)
+                to_image, whole, st = render(a.host, args, out, stats)
                 ref = reference.setdefault(scene, out)
                 if not same_bytes(out, ref):
                     sys.exit(f"{scene} {name}: the image differs from the in-process one")
-                results[key].append((wall, st))
-                print(f"run {run + 1}: {scene:8} {name:40} {wall:7.2f} s", flush=True)
+                results[key].append((to_image, whole, st))
+                print(f"run {run + 1}: {scene:8} {name:40} {to_image:7.2f} s to the image,"
+                      f" {whole:7.2f} s to exit", flush=True)
 
-    def median(key):
-        return statistics.median(w for w, _ in results[key])
+    def median(key, which=0):
+        return statistics.median(r[which] for r in results[key])
 
     print()
-    print("| scene | run | wall s (each run) | median s | x in-process | fetched by render nodes |"
+    print("| scene | run | s to the image (each run) | median s | x in-process |"
+          " s to exit, median | x in-process | fetched by render nodes |"
           " render nodes' own memory, max |")
-    print("|---|---|---|---:|---:|---:|---:|")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for scene, name, _ in configs:
         key = (scene, name)
-        walls = " / ".join(f"{w:.2f}" for w, _ in results[key])
+        walls = " / ".join(f"{r[0]:.2f}" for r in results[key])
         base = median((scene, "in-process"))
-        st = results[key][-1][1]
+        base_whole = median((scene, "in-process"), 1)
+        st = results[key][-1][2]
         nodes = [n for n in st.get("nodes", []) if n.get("role") == "Render"]
         fetched = st["totals"]["bytes_fetched_dma"] + st["totals"]["bytes_fetched_serial"] \
             if "totals" in st else 0
@@ -122,38 +136,45 @@ def main():
         budget = st.get("cache_bytes", 0)
         mem = f"{private / MIB:.1f} MiB (budget {budget / MIB:.1f})" if nodes else "-"
         print(f"| {scene} | {name} | {walls} | {median(key):.2f} | {median(key) / base:.2f} |"
+              f" {median(key, 1):.2f} | {median(key, 1) / base_whole:.2f} |"
               f" {fetched / MIB:.0f} MiB | {mem} |")
 
-    def ratio(scene, name):
-        return median((scene, name)) / median((scene, "in-process"))
+    def ratio(scene, name, which=0):
+        return median((scene, name), which) / median((scene, "in-process"), which)
 
     def fetched(name):
-        st = results[("spheres", name)][-1][1]["totals"]
+        st = results[("spheres", name)][-1][2]["totals"]
         return st["bytes_fetched_dma"] + st["bytes_fetched_serial"]
 
     worst_private = max(
-        (n.get("peak_private_bytes", 0) - results[k][-1][1].get("cache_bytes", 0)
-         for k in results for _, st in results[k][-1:]
+        (n.get("peak_private_bytes", 0) - results[k][-1][2].get("cache_bytes", 0)
+         for k in results for _, _, st in results[k][-1:]
          for n in st.get("nodes", []) if n.get("role") == "Render"), default=0)
+    def times(scene, name):
+        return ratio(scene, name), ratio(scene, name, 1)
+
+    # (what, measured to the image, measured to exit (None where not a time), bar)
     targets = [
         ("spheres, 86 processes at cache 100% within 1.5x in-process",
-         ratio("spheres", "86 processes, cache 100%"), 1.5),
+         *times("spheres", "86 processes, cache 100%"), 1.5),
         ("spheres, 86 processes at cache 5% within 2x in-process",
-         ratio("spheres", "86 processes, cache 5%"), 2.0),
+         *times("spheres", "86 processes, cache 5%"), 2.0),
         ("spheres, bytes fetched at 5% at most 2x those at 100%",
-         fetched("86 processes, cache 5%") / max(fetched("86 processes, cache 100%"), 1), 2.0),
+         fetched("86 processes, cache 5%") / max(fetched("86 processes, cache 100%"), 1), None,
+         2.0),
         ("spheres, TCP only at cache 100% within 3x in-process",
-         ratio("spheres", "86 processes, cache 100%, TCP only"), 3.0),
+         *times("spheres", "86 processes, cache 100%, TCP only"), 3.0),
         ("Cornell box, 86 processes within 1.10x in-process",
-         ratio("cornell", "86 processes"), 1.10),
+         *times("cornell", "86 processes"), 1.10),
         ("render node's own memory at most its budget + 8 MiB (excess, MiB)",
-         worst_private / MIB, 8.0),
+         worst_private / MIB, None, 8.0),
     ]
     print()
-    print("| target | measured | bar | met |")
-    print("|---|---:|---:|---|")
-    for what, value, bar in targets:
-        print(f"| {what} | {value:.2f} | {bar:.2f} | {'yes' if value <= bar else 'no'} |")
+    print("| target | measured | to exit | bar | met |")
+    print("|---|---:|---:|---:|---|")
+    for what, value, whole, bar in targets:
+        whole = "-" if whole is None else f"{whole:.2f}"
+        print(f"| {what} | {value:.2f} | {whole} | {bar:.2f} | {'yes' if value <= bar else 'no'} |")
 
 
 if __name__ == "__main__":
