@@ -32,7 +32,7 @@ use crate::{
     light::Light,
     math::{COS_TAYLOR, INV_PI, SIN_TAYLOR, offset_ray_origin},
     sampler::Draws,
-    simd::{F32x8, M8},
+    simd::{AlignedFrame, F32x8, M8},
     source::{DataError, SceneData},
     trace::{AlphaKey, Tracer, shadow_ray},
 };
@@ -435,6 +435,7 @@ impl DiffuseWave {
         if self.len == 0 {
             return Ok(0);
         }
+        let _frame = AlignedFrame::new();
         DiffuseWave::compute(&self.input, &mut self.output);
         let o = &self.output;
         let mut live = 0;

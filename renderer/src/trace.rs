@@ -13,6 +13,7 @@ use crate::{
     ray::{Ray, RayQuery},
     sampler::{SampleKey, Sampler},
     scene::SceneHeader,
+    simd::AlignedFrame,
     source::{DataError, Item, SceneData},
     triangle::TriHit,
 };
@@ -224,6 +225,8 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         ray: &Ray,
         key: AlphaKey,
     ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
+        // The query's 8-lane constants live on this frame (see `AlignedFrame`).
+        let _frame = AlignedFrame::new();
         let q = RayQuery::new(ray);
         let found = self.memo_of(ray, |m| &mut m.closest);
         let ClosestFound {
@@ -415,6 +418,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     /// them answers without the missing ones.
     pub fn occluded(&self, ray: &Ray, key: AlphaKey) -> Result<bool, DataError> {
         self.shadow_rays.set(self.shadow_rays.get() + 1);
+        let _frame = AlignedFrame::new();
         let q = RayQuery::new(ray);
         let mut searched = self.memo_of(ray, |m| &mut m.occluded).unwrap_or_default();
         let mut tmax = ray.tmax;
