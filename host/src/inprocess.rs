@@ -283,7 +283,7 @@ fn prepare(config: &RenderConfig) -> Result<Prepared, RenderError> {
         tracing::warn!("{}: {w}", config.scene);
     }
     let scene_sha256 = checkpoint::scene_digest(&desc);
-    let (scene, data) = renderer::prepare(desc, &config.prepare);
+    let (scene, data) = crate::large_pages::prepare(desc, &config.prepare);
     let triangles = scene.triangle_count();
     let (settings, camera) = camera_and_settings(config, &scene)?;
     let key = CheckpointKey::new(scene_sha256, &config.prepare, &settings, &camera);

@@ -6,6 +6,7 @@ pub mod checkpoint;
 pub mod cluster;
 pub mod distributed;
 pub mod inprocess;
+pub mod large_pages;
 pub mod progress;
 mod recovery;
 pub mod scene_source;

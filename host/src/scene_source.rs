@@ -53,7 +53,7 @@ pub fn load_scene(
     environment: Option<renderer::light::Environment>,
 ) -> Result<LoadedScene, scene_io::LoadError> {
     let (desc, warnings) = read_scene(source, environment)?;
-    let (scene, data) = renderer::prepare(desc, opts);
+    let (scene, data) = crate::large_pages::prepare(desc, opts);
     let triangles = scene.triangle_count();
     Ok(LoadedScene {
         scene,

@@ -3,7 +3,8 @@
 //! (`bench/peers/embree.py` does that with Intel Embree).
 //!
 //! The mesh goes through the normal loader and [`renderer::prepare`], exactly as
-//! `render --in-process` prepares a scene (chunks, both tree levels, their walking form), and
+//! `render --in-process` prepares a scene (chunks, both tree levels, their walking form, moved
+//! into large pages by [`host::large_pages`]), and
 //! rays go through [`Tracer`], the interface every integrator calls. The same rays are then
 //! cast through a render node's cache ([`DemandCache`]) holding every chunk, which is what a
 //! cluster renders with.
@@ -190,7 +191,8 @@ pub fn run(cfg: &RaysConfig, progress: &dyn Fn(&str)) -> Result<RaysReport, Rays
     for _ in 0..repeat.min(3) {
         let desc = loaded.desc.clone();
         let start = Instant::now();
-        let p = renderer::prepare(desc, &opts);
+        // As `render --in-process` prepares.
+        let p = host::large_pages::prepare(desc, &opts);
         builds.push(start.elapsed().as_secs_f64());
         prepared = Some(p);
     }

@@ -228,15 +228,25 @@ fn transcode(
 }
 
 impl Bvh8 {
+    /// How many leaf blocks [`Bvh8::for_chunk`] makes of a chunk's wire nodes (at most).
+    fn leaf_count(wire: &[WideNode]) -> usize {
+        wire.iter()
+            .flatten()
+            .filter(|&&r| matches!(bvh::child(r), Child::Leaf { .. }))
+            .count()
+    }
+
+    /// The words [`Bvh8::to_words`] gives for the chunk tree of these validated wire nodes,
+    /// known before it is built (every node is kept, and a valid tree's every leaf).
+    pub fn words_len_for(wire: &[WideNode]) -> usize {
+        WALK_HEADER_WORDS + wire.len() * NODE_WORDS + Bvh8::leaf_count(wire) * TRI4_WORDS
+    }
+
     /// A chunk's tree, from its validated wire nodes and its triangles in leaf order.
     pub fn for_chunk(wire: &[WideNode], positions: &[[f32; 9]]) -> Bvh8 {
         // Sized exactly at once: a render node transcodes every chunk it fetches, and blocks
         // grown by doubling left holes in its heap that kept its memory above its budget.
-        let leaf_count = wire
-            .iter()
-            .flatten()
-            .filter(|&&r| matches!(bvh::child(r), Child::Leaf { .. }))
-            .count();
+        let leaf_count = Bvh8::leaf_count(wire);
         let mut leaves = Vec::with_capacity(leaf_count);
         let nodes = transcode(wire, |first, count, _| {
             let start = first as usize;
@@ -299,18 +309,29 @@ impl Bvh8 {
     /// This tree as words, for a block that [`Bvh8::in_block`] reads in place: a header,
     /// the nodes, the leaves. Placed at a 64-byte aligned word, its nodes are aligned too.
     pub fn to_words(&self) -> Vec<u32> {
-        let mut w = Vec::with_capacity(
-            WALK_HEADER_WORDS + self.nodes.len() * NODE_WORDS + self.leaves.len() * TRI4_WORDS,
-        );
-        w.extend([
+        let mut w = vec![0; self.words_len()];
+        self.write_words(&mut w);
+        w
+    }
+
+    /// How many words [`Bvh8::to_words`] gives.
+    pub fn words_len(&self) -> usize {
+        WALK_HEADER_WORDS + self.nodes.len() * NODE_WORDS + self.leaves.len() * TRI4_WORDS
+    }
+
+    /// Writes what [`Bvh8::to_words`] gives into `out`, which must be
+    /// [`Bvh8::words_len`] words long.
+    pub fn write_words(&self, out: &mut [u32]) {
+        let (head, rest) = out.split_at_mut(WALK_HEADER_WORDS);
+        head.fill(0);
+        head[..3].copy_from_slice(&[
             WALK_MAGIC,
             self.nodes.len() as u32,
             self.leaves.len() as u32,
         ]);
-        w.resize(WALK_HEADER_WORDS, 0);
-        w.extend_from_slice(bytemuck::cast_slice(&self.nodes));
-        w.extend_from_slice(bytemuck::cast_slice(&self.leaves));
-        w
+        let (nodes, leaves) = rest.split_at_mut(self.nodes.len() * NODE_WORDS);
+        nodes.copy_from_slice(bytemuck::cast_slice(&self.nodes));
+        leaves.copy_from_slice(bytemuck::cast_slice(&self.leaves));
     }
 
     /// The tree [`Bvh8::to_words`] wrote at words `start..end` of `block`, walked in place,

@@ -257,8 +257,38 @@ impl Chunk {
 
     /// Builds the walking form; only ever called on valid words.
     fn transcoded(mut self) -> Chunk {
-        self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+        self.transcode();
         self
+    }
+
+    /// Builds the walking form, in memory of the chunk's own.
+    pub(crate) fn transcode(&mut self) {
+        self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+    }
+
+    /// How many words this chunk's walking form takes as [`Bvh8::to_words`] writes it, from
+    /// its tree's shape, without building it.
+    pub(crate) fn walk_words_len(&self) -> usize {
+        Bvh8::words_len_for(self.nodes())
+    }
+
+    /// Builds the walking form into `out` (as [`Bvh8::to_words`] writes it); false, with
+    /// nothing written, if `out` is not its length.
+    pub(crate) fn transcode_into(&self, out: &mut [u32]) -> bool {
+        let form = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+        if form.words_len() != out.len() {
+            return false;
+        }
+        form.write_words(out);
+        true
+    }
+
+    /// Walks this chunk's tree where `place` holds it (as [`Bvh8::to_words`] wrote it)
+    /// instead of in memory of its own, after checking it as any walking form read in place
+    /// is checked; on error the chunk is left as it was.
+    pub fn walk_in(&mut self, place: WalkPlace) -> Result<(), WalkFormError> {
+        self.accel = Bvh8::in_block(place.block, place.start, place.end, self.tri_count())?;
+        Ok(())
     }
 
     /// Whether the words and walking form lie in a shared block rather than in this
@@ -664,6 +694,17 @@ pub fn build_chunk_from(
     mesh_id: u32,
     remap: &mut Vec<u32>,
 ) -> Option<Chunk> {
+    chunk_words_from(mesh, wide, chunk_id, mesh_id, remap).map(Chunk::transcoded)
+}
+
+/// As [`build_chunk_from`], without the walking form (for a caller that places it).
+pub(crate) fn chunk_words_from(
+    mesh: &MeshData,
+    wide: &bvh::WideTree,
+    chunk_id: u32,
+    mesh_id: u32,
+    remap: &mut Vec<u32>,
+) -> Option<Chunk> {
     if bvh::validate_tree(&wide.nodes, wide.order.len()).is_err() {
         return None;
     }
@@ -764,7 +805,7 @@ pub fn build_chunk_from(
         layout,
         accel: Bvh8::default(),
     };
-    Some(chunk.transcoded())
+    Some(chunk)
 }
 
 impl Chunk {

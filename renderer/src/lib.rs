@@ -31,5 +31,5 @@ pub mod triangle;
 pub use camera::{Camera, Projection};
 pub use integrator::IntegratorKind;
 pub use render::{Image, Rect, RenderSettings};
-pub use scene::{PrepareOptions, SceneDesc, SceneHeader, prepare};
+pub use scene::{MakeBlock, PrepareOptions, SceneDesc, SceneHeader, prepare, prepare_with};
 pub use source::{DataError, MemoryData, SceneData};

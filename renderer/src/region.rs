@@ -16,6 +16,11 @@ pub trait Block: Send + Sync {
     fn words(&self) -> &[u32];
 }
 
+/// Memory for a [`Block`], written once before it is shared.
+pub trait BlockMut: Block {
+    fn words_mut(&mut self) -> &mut [u32];
+}
+
 enum Keep<T> {
     Empty,
     Own(Box<[T]>),

@@ -6,18 +6,20 @@
 //! top-level tree over chunk bounds; small, sent to every render node) and [`MemoryData`]
 //! (the chunks and texture tiles, which render nodes fetch on demand).
 
+use std::sync::Arc;
+
 use glam::{Vec2, Vec3};
 use obvhs::aabb::Aabb;
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    accel::Bvh8,
+    accel::{Bvh8, WalkPlace},
     bvh,
     camera::Camera,
     chunk::{self, Chunk, MeshData},
     light::{Environment, Light, LightDistribution},
     material::Material,
-    region::Region,
+    region::{Block, BlockMut, Region},
     source::MemoryData,
     texture::{self, Filter, TextureInfo, Wrap},
 };
@@ -475,7 +477,13 @@ pub enum SceneError {
 /// are the same bytes whatever the number of threads (a scene of a million triangles takes
 /// a third of a second on one: the first render of a large scene waits for it, and so does
 /// a cluster, whose other processes are idle meanwhile).
-fn build_chunks(meshes: &[MeshData], opts: &PrepareOptions, threads: usize) -> Vec<Chunk> {
+/// Builds the chunks of `meshes`, with their walking forms when `transcode`.
+fn build_chunks(
+    meshes: &[MeshData],
+    opts: &PrepareOptions,
+    threads: usize,
+    transcode: bool,
+) -> Vec<Chunk> {
     let pieces: Vec<(usize, Vec<u32>)> = meshes
         .iter()
         .enumerate()
@@ -498,7 +506,14 @@ fn build_chunks(meshes: &[MeshData], opts: &PrepareOptions, threads: usize) -> V
             };
             done.push((
                 i,
-                piece_chunks(&meshes[*m], *m as u32, piece, &mut builder, &mut remap),
+                piece_chunks(
+                    &meshes[*m],
+                    *m as u32,
+                    piece,
+                    &mut builder,
+                    &mut remap,
+                    transcode,
+                ),
             ));
         }
     };
@@ -524,6 +539,60 @@ fn build_chunks(meshes: &[MeshData], opts: &PrepareOptions, threads: usize) -> V
     chunks
 }
 
+/// Builds the walking forms of `chunks` (which have none yet) into one block from `make`,
+/// `threads` at a time, and has the chunks walked there. A chunk whose form could not be
+/// placed (a block too small or misaligned: not ours to make) gets one of its own.
+fn walks_in_block(chunks: &mut [Chunk], make: MakeBlock<'_>, threads: usize) {
+    let mut places = Vec::with_capacity(chunks.len());
+    let mut end = 0usize;
+    for c in chunks.iter() {
+        // 16 words: 64 bytes, so that each tree's nodes lie on whole cache lines.
+        let start = end.next_multiple_of(16);
+        end = start + c.walk_words_len();
+        places.push((start, end));
+    }
+    let mut block = make(end);
+    let words = block.words_mut();
+    let mut placed = vec![false; chunks.len()];
+    if words.len() >= end && (words.as_ptr() as usize).is_multiple_of(64) {
+        // Each chunk's own range, cut from the block in order.
+        let mut jobs = Vec::with_capacity(chunks.len());
+        let mut rest = &mut words[..end];
+        let mut at = 0;
+        for ((c, &(start, end)), done) in chunks.iter().zip(&places).zip(&mut placed) {
+            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
+            let (range, tail) = tail.split_at_mut(end - start);
+            rest = tail;
+            at = end;
+            jobs.push((c, range, done));
+        }
+        let per = jobs.len().div_ceil(threads.max(1)).max(1);
+        std::thread::scope(|scope| {
+            for group in jobs.chunks_mut(per) {
+                scope.spawn(move || {
+                    for (c, range, done) in group {
+                        **done = c.transcode_into(range);
+                    }
+                });
+            }
+        });
+    }
+    let block: Arc<dyn BlockMut> = Arc::from(block);
+    let block: Arc<dyn Block> = block;
+    for ((c, (start, end)), done) in chunks.iter_mut().zip(places).zip(placed) {
+        let place = WalkPlace {
+            block: block.clone(),
+            start,
+            end,
+        };
+        // A form built here from a valid tree passes the check read-in-place forms get; if
+        // one did not, its chunk would still be walked, from a copy of its own.
+        if !done || c.walk_in(place).is_err() {
+            c.transcode();
+        }
+    }
+}
+
 /// The chunks of one piece of mesh `mesh_id`: one, or more where a tree came out too deep
 /// (coincident triangles) and the piece was halved, in the order of its triangles.
 fn piece_chunks(
@@ -532,6 +601,7 @@ fn piece_chunks(
     piece: &[u32],
     builder: &mut bvh::Builder,
     remap: &mut Vec<u32>,
+    transcode: bool,
 ) -> Vec<Chunk> {
     let mut out = Vec::new();
     let mut work = vec![piece.to_vec()];
@@ -543,8 +613,13 @@ fn piece_chunks(
         for t in &mut wide.order {
             *t = piece[*t as usize];
         }
-        match chunk::build_chunk_from(mesh, &wide, 0, mesh_id, remap) {
-            Some(c) => out.push(c),
+        match chunk::chunk_words_from(mesh, &wide, 0, mesh_id, remap) {
+            Some(mut c) => {
+                if transcode {
+                    c.transcode();
+                }
+                out.push(c)
+            }
             None => {
                 let mid = piece.len() / 2;
                 work.push(piece[mid..].to_vec());
@@ -558,10 +633,32 @@ fn piece_chunks(
 /// Splits meshes into chunks, builds both BVH levels, collects emissive triangles into the
 /// light list and cuts textures into tiles. Deterministic.
 pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
+    prepare_with(desc, opts, None)
+}
+
+/// Makes the memory of a block of walking forms: at least the given number of words, zeroed,
+/// 64-byte aligned.
+pub type MakeBlock<'a> = &'a (dyn Fn(usize) -> Box<dyn BlockMut> + Sync);
+
+/// As [`prepare`]; with `walks`, every chunk's walking form is built straight into one
+/// block that `walks` makes, each at a 64-byte aligned place, and rays walk the chunks there
+/// as a render node walks a card's segment. The block can be memory of another kind than
+/// the heap: the host maps it in large pages, where random rays through a large scene would
+/// otherwise wait on a page walk at nearly every node (a 4 KiB page holds 16 nodes). Built
+/// straight there, the forms take no more memory than in the heap. The same rays give the
+/// same answers either way.
+pub fn prepare_with(
+    desc: SceneDesc,
+    opts: &PrepareOptions,
+    walks: Option<MakeBlock<'_>>,
+) -> (SceneHeader, MemoryData) {
     // Each thread keeps a vertex map as long as the largest mesh: eight bound that memory on
     // a large machine, where reading the file takes longer than building by then.
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
-    let mut chunks = build_chunks(&desc.meshes, opts, threads);
+    let mut chunks = build_chunks(&desc.meshes, opts, threads, walks.is_none());
+    if let Some(make) = walks {
+        walks_in_block(&mut chunks, make, threads);
+    }
 
     // Bounds of everything.
     let mut bounds = Aabb::empty();
@@ -826,7 +923,7 @@ mod tests {
         let opts = PrepareOptions {
             chunk_triangles: 50,
         };
-        let one = build_chunks(&meshes, &opts, 1);
+        let one = build_chunks(&meshes, &opts, 1, true);
         let stacked = one.iter().filter(|c| c.header().mesh_id == 1).count();
         assert!(
             stacked > 300 / 50,
@@ -838,12 +935,71 @@ mod tests {
         }
         for threads in [2, 3, 8] {
             assert_eq!(
-                build_chunks(&meshes, &opts, threads),
+                build_chunks(&meshes, &opts, threads, true),
                 one,
                 "{threads} threads"
             );
         }
-        assert!(build_chunks(&[], &opts, 4).is_empty());
+        assert!(build_chunks(&[], &opts, 4, true).is_empty());
+    }
+
+    /// Words on whole cache lines, for blocks of walking forms in tests.
+    #[repr(C, align(64))]
+    #[derive(Clone, Copy)]
+    struct Line([u32; 16]);
+
+    struct LineBlock(Vec<Line>, usize);
+
+    impl Block for LineBlock {
+        fn words(&self) -> &[u32] {
+            // SAFETY: as in `words_mut`.
+            let all = unsafe {
+                std::slice::from_raw_parts(self.0.as_ptr().cast::<u32>(), 16 * self.0.len())
+            };
+            &all[..self.1]
+        }
+    }
+
+    impl BlockMut for LineBlock {
+        fn words_mut(&mut self) -> &mut [u32] {
+            let n = self.1;
+            // SAFETY: `Line` is 16 `u32`s with no padding, so the lines are `16 * len` words.
+            let all = unsafe {
+                std::slice::from_raw_parts_mut(self.0.as_mut_ptr().cast::<u32>(), 16 * self.0.len())
+            };
+            &mut all[..n]
+        }
+    }
+
+    #[test]
+    fn walking_forms_built_into_a_block_are_those_built_apart_and_are_walked_there() {
+        let opts = PrepareOptions {
+            chunk_triangles: 64,
+        };
+        let (_, apart) = crate::prepare(crate::demo::demo_scene(), &opts);
+        assert!(apart.chunks.len() > 4, "{} chunks", apart.chunks.len());
+        let made = std::sync::atomic::AtomicUsize::new(0);
+        let lines = |words: usize| -> Box<dyn BlockMut> {
+            made.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            Box::new(LineBlock(vec![Line([7; 16]); words.div_ceil(16)], words))
+        };
+        let (_, together) = prepare_with(crate::demo::demo_scene(), &opts, Some(&lines));
+        assert_eq!(made.into_inner(), 1, "one block for the whole scene");
+        assert_eq!(together.chunks, apart.chunks);
+        for c in &together.chunks {
+            assert!(c.accel().nodes.is_shared() && c.accel().leaves.is_shared());
+        }
+        // A block too small for them (not one the caller should make): each chunk keeps a
+        // walking form of its own, the same.
+        let short = |words: usize| -> Box<dyn BlockMut> {
+            Box::new(LineBlock(
+                vec![Line([0; 16]); words.div_ceil(32)],
+                words / 2,
+            ))
+        };
+        let (_, own) = prepare_with(crate::demo::demo_scene(), &opts, Some(&short));
+        assert_eq!(own.chunks, apart.chunks);
+        assert!(own.chunks.iter().all(|c| !c.accel().nodes.is_shared()));
     }
 
     #[test]

@@ -666,6 +666,13 @@ impl AlignedFrame {
     }
 }
 
+impl Default for AlignedFrame {
+    #[inline(always)]
+    fn default() -> AlignedFrame {
+        AlignedFrame::new()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::U32x8;

@@ -1,0 +1,122 @@
+//! A scene's walking forms in large pages (2 MiB) when it is rendered in this process (and in
+//! `bench rays`, which prepares as a render does).
+//!
+//! Random rays through a large scene meet a different node or leaf at nearly every step, and
+//! with 4 KiB pages each step may also wait for a page walk: a processor's TLB maps a few
+//! thousand pages (about 12 MiB of 4 KiB pages on the machines measured), against 76 MB of
+//! walking form for a million triangles. Intel Embree's scenes get large pages (its process
+//! held about 120 MiB of them while `bench/peers/embree.py` traced). On Linux, transparent
+//! huge pages are commonly given only to memory that asks for them (`madvise` mode), which
+//! this memory does before it is first written. Where the system gives none, it is ordinary
+//! memory, and rays walk it the same: only the time to reach it changes, never an answer.
+
+use std::{alloc::Layout, ptr::NonNull};
+
+use renderer::{
+    MemoryData, PrepareOptions, SceneDesc, SceneHeader,
+    region::{Block, BlockMut},
+};
+
+const LARGE_PAGE: usize = 2 << 20;
+
+/// Zeroed words, aligned to a large page and asked to be mapped in large pages.
+pub struct LargePageWords {
+    ptr: NonNull<u32>,
+    words: usize,
+    /// None when nothing was allocated (no words, or no memory to be had).
+    layout: Option<Layout>,
+}
+
+// SAFETY: the words are plain memory owned by this value; `&self` hands out only `&[u32]`.
+unsafe impl Send for LargePageWords {}
+// SAFETY: as above.
+unsafe impl Sync for LargePageWords {}
+
+impl LargePageWords {
+    /// `words` zeroed words, or none at all if that much memory cannot be had (the caller
+    /// then keeps what it has).
+    pub fn new(words: usize) -> LargePageWords {
+        let empty = LargePageWords {
+            ptr: NonNull::dangling(),
+            words: 0,
+            layout: None,
+        };
+        let Some(layout) = words
+            .checked_mul(4)
+            .filter(|&b| b > 0)
+            .map(|b| b.next_multiple_of(LARGE_PAGE))
+            .and_then(|b| Layout::from_size_align(b, LARGE_PAGE).ok())
+        else {
+            return empty;
+        };
+        // SAFETY: the layout's size is not zero.
+        let Some(ptr) = NonNull::new(unsafe { std::alloc::alloc(layout) }) else {
+            return empty;
+        };
+        // Asked before the first write, so that its pages are faulted in large; a refusal
+        // leaves ordinary pages, which serve as well.
+        #[cfg(target_os = "linux")]
+        // SAFETY: the range is exactly the allocation just made; advice never invalidates it.
+        unsafe {
+            libc::madvise(ptr.as_ptr().cast(), layout.size(), libc::MADV_HUGEPAGE);
+        }
+        // SAFETY: the allocation is valid for `layout.size()` bytes of writes.
+        unsafe { std::ptr::write_bytes(ptr.as_ptr(), 0, layout.size()) };
+        LargePageWords {
+            ptr: ptr.cast(),
+            words,
+            layout: Some(layout),
+        }
+    }
+}
+
+impl Drop for LargePageWords {
+    fn drop(&mut self) {
+        if let Some(layout) = self.layout {
+            // SAFETY: allocated in `new` with this very layout.
+            unsafe { std::alloc::dealloc(self.ptr.as_ptr().cast(), layout) };
+        }
+    }
+}
+
+impl Block for LargePageWords {
+    fn words(&self) -> &[u32] {
+        // SAFETY: `words` words from `ptr` were zeroed in `new` (or there are none) and stay
+        // owned by this value; writes go through `&mut self` only.
+        unsafe { std::slice::from_raw_parts(self.ptr.as_ptr(), self.words) }
+    }
+}
+
+impl BlockMut for LargePageWords {
+    fn words_mut(&mut self) -> &mut [u32] {
+        // SAFETY: as in `words`, and `&mut self` makes this the only reference.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.as_ptr(), self.words) }
+    }
+}
+
+/// Prepares a scene as [`renderer::prepare`] does, its walking forms built in one block of
+/// large pages (see the module doc).
+pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
+    renderer::prepare_with(
+        desc,
+        opts,
+        Some(&|words| Box::new(LargePageWords::new(words))),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn words_are_zeroed_aligned_to_a_large_page_and_writable() {
+        let mut b = LargePageWords::new(1000);
+        assert_eq!(b.words().len(), 1000);
+        assert!(b.words().iter().all(|&w| w == 0));
+        assert!((b.words().as_ptr() as usize).is_multiple_of(LARGE_PAGE));
+        b.words_mut()[999] = 7;
+        assert_eq!(b.words()[999], 7);
+        assert!(LargePageWords::new(0).words().is_empty());
+        assert!(LargePageWords::new(usize::MAX).words().is_empty());
+    }
+}
