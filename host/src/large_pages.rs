@@ -49,19 +49,9 @@ impl LargePageWords {
         else {
             return empty;
         };
-        // SAFETY: the layout's size is not zero.
-        let Some(ptr) = NonNull::new(unsafe { std::alloc::alloc(layout) }) else {
+        let Some(ptr) = allocate(layout) else {
             return empty;
         };
-        // Asked before the first write, so that its pages are faulted in large; a refusal
-        // leaves ordinary pages, which serve as well.
-        #[cfg(target_os = "linux")]
-        // SAFETY: the range is exactly the allocation just made; advice never invalidates it.
-        unsafe {
-            libc::madvise(ptr.as_ptr().cast(), layout.size(), libc::MADV_HUGEPAGE);
-        }
-        // SAFETY: the allocation is valid for `layout.size()` bytes of writes.
-        unsafe { std::ptr::write_bytes(ptr.as_ptr(), 0, layout.size()) };
         LargePageWords {
             ptr: ptr.cast(),
             words,
@@ -70,11 +60,69 @@ impl LargePageWords {
     }
 }
 
+/// Zeroed memory of `layout` (a whole number of large pages, aligned to one), its pages
+/// asked to be large. On Linux a private anonymous mapping, whose pages the kernel zeroes as
+/// they are first written: zeroing them here as well cost a pass over the whole block.
+#[cfg(target_os = "linux")]
+fn allocate(layout: Layout) -> Option<NonNull<u8>> {
+    let bytes = layout.size();
+    // Over-asked by an alignment, so that an aligned start lies within; the rest goes back.
+    let len = bytes.checked_add(layout.align())?;
+    // SAFETY: a fresh anonymous mapping; no existing memory is touched.
+    let p = unsafe {
+        libc::mmap(
+            std::ptr::null_mut(),
+            len,
+            libc::PROT_READ | libc::PROT_WRITE,
+            libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+            -1,
+            0,
+        )
+    };
+    if p == libc::MAP_FAILED {
+        return None;
+    }
+    let at = p as usize;
+    let start = at.next_multiple_of(layout.align());
+    let (head, tail) = (start - at, at + len - (start + bytes));
+    // SAFETY: both ranges lie within the mapping just made and outside the part kept; the
+    // advice covers exactly the part kept, before its first write, so that its pages are
+    // faulted in large (a refusal leaves ordinary pages, which serve as well).
+    unsafe {
+        if head > 0 {
+            libc::munmap(p, head);
+        }
+        if tail > 0 {
+            libc::munmap((start + bytes) as *mut libc::c_void, tail);
+        }
+        libc::madvise(start as *mut libc::c_void, bytes, libc::MADV_HUGEPAGE);
+    }
+    NonNull::new(start as *mut u8)
+}
+
+#[cfg(target_os = "linux")]
+fn release(ptr: NonNull<u8>, layout: Layout) {
+    // SAFETY: `ptr` and the size are the part of a mapping `allocate` kept.
+    unsafe { libc::munmap(ptr.as_ptr().cast(), layout.size()) };
+}
+
+/// Elsewhere, zeroed memory from the global allocator, in pages of the system's choosing.
+#[cfg(not(target_os = "linux"))]
+fn allocate(layout: Layout) -> Option<NonNull<u8>> {
+    // SAFETY: the layout's size is not zero.
+    NonNull::new(unsafe { std::alloc::alloc_zeroed(layout) })
+}
+
+#[cfg(not(target_os = "linux"))]
+fn release(ptr: NonNull<u8>, layout: Layout) {
+    // SAFETY: allocated by `allocate` with this very layout.
+    unsafe { std::alloc::dealloc(ptr.as_ptr(), layout) };
+}
+
 impl Drop for LargePageWords {
     fn drop(&mut self) {
         if let Some(layout) = self.layout {
-            // SAFETY: allocated in `new` with this very layout.
-            unsafe { std::alloc::dealloc(self.ptr.as_ptr().cast(), layout) };
+            release(self.ptr.cast(), layout);
         }
     }
 }
