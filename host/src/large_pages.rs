@@ -142,13 +142,25 @@ impl BlockMut for LargePageWords {
     }
 }
 
+/// Walking forms smaller than this stay in the heap: a TLB maps them whole in small pages,
+/// and a large page would hold mostly nothing (the Cornell box's forms take 15 KB).
+const WORTH_A_BLOCK: usize = 8 << 20;
+
 /// Prepares a scene as [`renderer::prepare`] does, its walking forms built in one block of
-/// large pages (see the module doc).
+/// large pages if they are large enough to gain from it (see the module doc).
 pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
     renderer::prepare_with(
         desc,
         opts,
-        Some(&|words| Box::new(LargePageWords::new(words))),
+        Some(&|words| {
+            // An empty block: the forms are then built in the heap, as `prepare` builds them.
+            let words = if words.saturating_mul(4) < WORTH_A_BLOCK {
+                0
+            } else {
+                words
+            };
+            Box::new(LargePageWords::new(words))
+        }),
     )
 }
 

@@ -541,7 +541,8 @@ fn build_chunks(
 
 /// Builds the walking forms of `chunks` (which have none yet) into one block from `make`,
 /// `threads` at a time, and has the chunks walked there. A chunk whose form could not be
-/// placed (a block too small or misaligned: not ours to make) gets one of its own.
+/// placed (a block too small or misaligned; an empty one is how a caller declines) gets one
+/// of its own.
 fn walks_in_block(chunks: &mut [Chunk], make: MakeBlock<'_>, threads: usize) {
     let mut places = Vec::with_capacity(chunks.len());
     let mut end = 0usize;
