@@ -476,8 +476,8 @@ pub enum SceneError {
 /// that order. Pieces are built on up to `threads` threads, each on its own, so the chunks
 /// are the same bytes whatever the number of threads (a scene of a million triangles takes
 /// a third of a second on one: the first render of a large scene waits for it, and so does
-/// a cluster, whose other processes are idle meanwhile).
-/// Builds the chunks of `meshes`, with their walking forms when `transcode`.
+/// a cluster, whose other processes are idle meanwhile). Each chunk gets its walking form
+/// too when `transcode`; otherwise the caller places them (`walks_in_block`).
 fn build_chunks(
     meshes: &[MeshData],
     opts: &PrepareOptions,
