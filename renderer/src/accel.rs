@@ -174,6 +174,11 @@ const WALK_MAGIC: u32 = u32::from_le_bytes(*b"MGW8");
 const NODE_WORDS: usize = size_of::<Node8>() / 4;
 const TRI4_WORDS: usize = size_of::<Tri4>() / 4;
 
+/// Words of a walking form of `nodes` nodes and `leaves` leaf blocks (see [`Bvh8::to_words`]).
+fn walk_words(nodes: usize, leaves: usize) -> usize {
+    WALK_HEADER_WORDS + nodes * NODE_WORDS + leaves * TRI4_WORDS
+}
+
 /// Transcodes a tree in its wire form. `leaf(first, count, nodes)` makes the reference and
 /// box of a leaf child (and may add nodes of its own). Nodes keep their indices. Input that
 /// is not a tree (which validation refuses before this is called) gives a tree missing the
@@ -239,7 +244,7 @@ impl Bvh8 {
     /// The words [`Bvh8::to_words`] gives for the chunk tree of these validated wire nodes,
     /// known before it is built (every node is kept, and a valid tree's every leaf).
     pub fn words_len_for(wire: &[WideNode]) -> usize {
-        WALK_HEADER_WORDS + wire.len() * NODE_WORDS + Bvh8::leaf_count(wire) * TRI4_WORDS
+        walk_words(wire.len(), Bvh8::leaf_count(wire))
     }
 
     /// A chunk's tree, from its validated wire nodes and its triangles in leaf order.
@@ -309,29 +314,39 @@ impl Bvh8 {
     /// This tree as words, for a block that [`Bvh8::in_block`] reads in place: a header,
     /// the nodes, the leaves. Placed at a 64-byte aligned word, its nodes are aligned too.
     pub fn to_words(&self) -> Vec<u32> {
-        let mut w = vec![0; self.words_len()];
-        self.write_words(&mut w);
-        w
+        self.with_word_parts(|parts| parts.concat())
     }
 
     /// How many words [`Bvh8::to_words`] gives.
     pub fn words_len(&self) -> usize {
-        WALK_HEADER_WORDS + self.nodes.len() * NODE_WORDS + self.leaves.len() * TRI4_WORDS
+        walk_words(self.nodes.len(), self.leaves.len())
     }
 
     /// Writes what [`Bvh8::to_words`] gives into `out`, which must be
     /// [`Bvh8::words_len`] words long.
     pub fn write_words(&self, out: &mut [u32]) {
-        let (head, rest) = out.split_at_mut(WALK_HEADER_WORDS);
-        head.fill(0);
+        self.with_word_parts(|parts| {
+            let mut at = 0;
+            for part in parts {
+                out[at..at + part.len()].copy_from_slice(part);
+                at += part.len();
+            }
+        })
+    }
+
+    /// `f` of the words of [`Bvh8::to_words`] in their three parts: header, nodes, leaves.
+    fn with_word_parts<R>(&self, f: impl FnOnce([&[u32]; 3]) -> R) -> R {
+        let mut head = [0; WALK_HEADER_WORDS];
         head[..3].copy_from_slice(&[
             WALK_MAGIC,
             self.nodes.len() as u32,
             self.leaves.len() as u32,
         ]);
-        let (nodes, leaves) = rest.split_at_mut(self.nodes.len() * NODE_WORDS);
-        nodes.copy_from_slice(bytemuck::cast_slice(&self.nodes));
-        leaves.copy_from_slice(bytemuck::cast_slice(&self.leaves));
+        f([
+            &head,
+            bytemuck::cast_slice(&self.nodes),
+            bytemuck::cast_slice(&self.leaves),
+        ])
     }
 
     /// The tree [`Bvh8::to_words`] wrote at words `start..end` of `block`, walked in place,

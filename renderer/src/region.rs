@@ -157,12 +157,50 @@ impl<T: std::fmt::Debug> std::fmt::Debug for Region<T> {
 pub(crate) mod testing {
     use std::sync::Arc;
 
-    use super::Block;
+    use super::{Block, BlockMut};
 
     pub struct Words(pub Vec<u32>);
     impl Block for Words {
         fn words(&self) -> &[u32] {
             &self.0
+        }
+    }
+
+    /// Sixteen words: one cache line.
+    #[derive(Clone, Copy)]
+    #[repr(C, align(64))]
+    struct Line([u32; 16]);
+    // SAFETY: `repr(C)` of sixteen `u32`s, 64 bytes, as aligned as it is long: no padding,
+    // every bit pattern valid.
+    unsafe impl bytemuck::Zeroable for Line {}
+    // SAFETY: as above.
+    unsafe impl bytemuck::Pod for Line {}
+
+    /// `len` zeroed words starting on a cache line, as a card's segment or the host's large
+    /// pages hold walking forms.
+    pub struct Lines {
+        lines: Vec<Line>,
+        len: usize,
+    }
+
+    impl Lines {
+        pub fn new(len: usize) -> Lines {
+            Lines {
+                lines: vec![Line([0; 16]); len.div_ceil(16)],
+                len,
+            }
+        }
+    }
+
+    impl Block for Lines {
+        fn words(&self) -> &[u32] {
+            &bytemuck::cast_slice(&self.lines)[..self.len]
+        }
+    }
+
+    impl BlockMut for Lines {
+        fn words_mut(&mut self) -> &mut [u32] {
+            &mut bytemuck::cast_slice_mut(&mut self.lines)[..self.len]
         }
     }
 
@@ -175,13 +213,11 @@ pub(crate) mod testing {
             places.push((at, at + p.len()));
             at = (at + p.len()).next_multiple_of(16);
         }
-        let mut v = vec![0u32; at + 16];
-        let base = (16 - (v.as_ptr() as usize / 4) % 16) % 16;
-        for (p, (s, e)) in parts.iter().zip(&mut places) {
-            v[base + *s..base + *e].copy_from_slice(p);
-            (*s, *e) = (base + *s, base + *e);
+        let mut block = Lines::new(at);
+        for (p, &(s, e)) in parts.iter().zip(&places) {
+            block.words_mut()[s..e].copy_from_slice(p);
         }
-        (Arc::new(Words(v)), places)
+        (Arc::new(block), places)
     }
 }
 

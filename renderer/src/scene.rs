@@ -639,7 +639,7 @@ pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryDa
 
 /// Makes the memory of a block of walking forms: at least the given number of words, zeroed,
 /// 64-byte aligned.
-pub type MakeBlock<'a> = &'a (dyn Fn(usize) -> Box<dyn BlockMut> + Sync);
+pub type MakeBlock<'a> = &'a dyn Fn(usize) -> Box<dyn BlockMut>;
 
 /// As [`prepare`]; with `walks`, every chunk's walking form is built straight into one
 /// block that `walks` makes, each at a 64-byte aligned place, and rays walk the chunks there
@@ -944,36 +944,9 @@ mod tests {
         assert!(build_chunks(&[], &opts, 4, true).is_empty());
     }
 
-    /// Words on whole cache lines, for blocks of walking forms in tests.
-    #[repr(C, align(64))]
-    #[derive(Clone, Copy)]
-    struct Line([u32; 16]);
-
-    struct LineBlock(Vec<Line>, usize);
-
-    impl Block for LineBlock {
-        fn words(&self) -> &[u32] {
-            // SAFETY: as in `words_mut`.
-            let all = unsafe {
-                std::slice::from_raw_parts(self.0.as_ptr().cast::<u32>(), 16 * self.0.len())
-            };
-            &all[..self.1]
-        }
-    }
-
-    impl BlockMut for LineBlock {
-        fn words_mut(&mut self) -> &mut [u32] {
-            let n = self.1;
-            // SAFETY: `Line` is 16 `u32`s with no padding, so the lines are `16 * len` words.
-            let all = unsafe {
-                std::slice::from_raw_parts_mut(self.0.as_mut_ptr().cast::<u32>(), 16 * self.0.len())
-            };
-            &mut all[..n]
-        }
-    }
-
     #[test]
     fn walking_forms_built_into_a_block_are_those_built_apart_and_are_walked_there() {
+        use crate::region::testing::Lines;
         let opts = PrepareOptions {
             chunk_triangles: 64,
         };
@@ -982,7 +955,7 @@ mod tests {
         let made = std::sync::atomic::AtomicUsize::new(0);
         let lines = |words: usize| -> Box<dyn BlockMut> {
             made.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            Box::new(LineBlock(vec![Line([7; 16]); words.div_ceil(16)], words))
+            Box::new(Lines::new(words))
         };
         let (_, together) = prepare_with(crate::demo::demo_scene(), &opts, Some(&lines));
         assert_eq!(made.into_inner(), 1, "one block for the whole scene");
@@ -992,12 +965,7 @@ mod tests {
         }
         // A block too small for them (not one the caller should make): each chunk keeps a
         // walking form of its own, the same.
-        let short = |words: usize| -> Box<dyn BlockMut> {
-            Box::new(LineBlock(
-                vec![Line([0; 16]); words.div_ceil(32)],
-                words / 2,
-            ))
-        };
+        let short = |words: usize| -> Box<dyn BlockMut> { Box::new(Lines::new(words / 2)) };
         let (_, own) = prepare_with(crate::demo::demo_scene(), &opts, Some(&short));
         assert_eq!(own.chunks, apart.chunks);
         assert!(own.chunks.iter().all(|c| !c.accel().nodes.is_shared()));
