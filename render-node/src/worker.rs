@@ -16,7 +16,7 @@ use fabric::{Fabric, Route};
 use protocol::{AskVia, CoherentRays, JobSpec, Message, NodeId, Rect, SubscreenWork, Transfer};
 use renderer::{
     SceneHeader,
-    render::{CoherenceStats, coherent_rows, render_pixel, render_rect_coherent},
+    render::{CoherenceStats, coherent_rows, paths_in_flight, render_pixel, render_rect_coherent},
     source::Touched,
     trace::{TraceStats, Tracer},
 };
@@ -209,6 +209,13 @@ pub struct Worker {
     pub stats: Arc<WorkStats>,
 }
 
+/// Memory a render node's rendering threads share for their paths in flight (coherent
+/// rays): half of what the node may hold beyond its cache's budget (8 MiB), the rest being
+/// its runtime, buffers and code. Over TCP with a small cache nearly every path waits at
+/// once, each with what its queries found, and 16,384 paths a thread took this node to 7.8
+/// MiB beyond its budget on one thread.
+const PATHS_MEMORY: usize = 4 << 20;
+
 /// A request for work waits as long as the render lasts: an idle node is held until the end,
 /// in case a lost node's work comes back. (A lost host is noticed on the control connection.)
 const ASK_TIMEOUT: Duration = Duration::from_secs(7 * 24 * 3600);
@@ -362,8 +369,9 @@ impl Worker {
             // want many paths in flight: as many rows are taken at once as fill a batch. One
             // at a time otherwise: rows not begun can be given back to idle nodes.
             let coherent = self.coherent();
+            let paths = paths_in_flight(PATHS_MEMORY / self.job.render_threads.max(1) as usize);
             let rows_at_once = if coherent {
-                coherent_rows(rect.width, settings.spp)
+                coherent_rows(rect.width, settings.spp, paths)
             } else {
                 1
             };
@@ -388,6 +396,7 @@ impl Worker {
                     &self.job.camera,
                     settings,
                     band,
+                    paths,
                     trace_stats,
                     &mut coherence,
                 )?;

@@ -303,14 +303,40 @@ pub struct CoherenceStats {
     pub brings: u64,
 }
 
-/// Paths one thread keeps in flight at most in [`render_rect_coherent`].
-const PATHS_IN_FLIGHT: u32 = 16_384;
+/// Paths one thread keeps in flight at most in [`render_rect_coherent`], however much
+/// memory it may use: more share each fetch, but past this few fetches are saved.
+const MOST_PATHS_IN_FLIGHT: u32 = 16_384;
 
-/// Rows of `width` pixels at `spp` samples that fill one batch of [`render_rect_coherent`]
+/// Paths one thread keeps in flight at least, however little memory it may use: fewer
+/// would share too little of each fetch to be worth putting aside.
+const LEAST_PATHS_IN_FLIGHT: u32 = 256;
+
+/// What a path in flight can take at most: its state, and while it waits what its queries
+/// found (an allocation of its own), its index in two lists and an entry of the queue of
+/// what is wanted most.
+pub const PATH_IN_FLIGHT_BYTES: usize = size_of::<Flight>()
+    + size_of::<QueryMemo>()
+    + 16
+    + 2 * size_of::<u32>()
+    + size_of::<(usize, std::cmp::Reverse<Item>)>();
+
+/// Paths one thread keeps in flight in [`render_rect_coherent`] within `memory` bytes.
+/// A render node's private memory is its cache's budget plus a small allowance, and a
+/// render over TCP with a small cache has nearly every path waiting with a memo at once,
+/// so the paths' memory is what the node's threads share of that allowance, not a number
+/// of paths per thread (16,384 paths per thread took 6.4 MiB).
+pub fn paths_in_flight(memory: usize) -> u32 {
+    (memory / PATH_IN_FLIGHT_BYTES).clamp(
+        LEAST_PATHS_IN_FLIGHT as usize,
+        MOST_PATHS_IN_FLIGHT as usize,
+    ) as u32
+}
+
+/// Rows of `width` pixels at `spp` samples that fill one batch of `paths` paths in flight
 /// (at least one).
-pub fn coherent_rows(width: u32, spp: u32) -> u32 {
+pub fn coherent_rows(width: u32, spp: u32, paths: u32) -> u32 {
     let per_row = (width.max(1) as u64) * spp.max(1) as u64;
-    (PATHS_IN_FLIGHT as u64 / per_row).clamp(1, u32::MAX as u64) as u32
+    (paths as u64 / per_row).clamp(1, u32::MAX as u64) as u32
 }
 /// A bounce put aside this often is finished fetching as it goes: it needs more at once
 /// than the cache keeps (a cache smaller than one bounce's data), and waiting again would
@@ -357,11 +383,14 @@ impl<F: Deferral> Drop for Deferring<'_, F> {
 /// from the state it started in, with the same numbers (the sampler's depend on the sample
 /// and the bounce only), and each pixel's samples are added in their order. Only the path
 /// tracer's bounces can wait; another integrator renders pixel by pixel, fetching as it goes.
+/// At most `paths` paths are in flight at once (see [`paths_in_flight`]), unless the rect
+/// has more pixels: one sample of each.
 pub fn render_rect_coherent<D: SceneData + Deferral>(
     tracer: &Tracer<D>,
     camera: &Camera,
     settings: &RenderSettings,
     rect: Rect,
+    paths: u32,
     stats: &mut TraceStats,
     coherence: &mut CoherenceStats,
 ) -> Result<Vec<[f32; 3]>, DataError> {
@@ -390,7 +419,7 @@ pub fn render_rect_coherent<D: SceneData + Deferral>(
     let per_round = if settings.noise_threshold > 0.0 {
         ADAPTIVE_BATCH
     } else {
-        (PATHS_IN_FLIGHT / (coords.len() as u32).max(1)).max(1)
+        (paths / (coords.len() as u32).max(1)).max(1)
     };
     let _deferring = Deferring::on(data);
     let mut first = 0;
@@ -930,6 +959,7 @@ mod tests {
             &camera,
             settings,
             rect,
+            paths_in_flight(usize::MAX),
             &mut c_stats,
             &mut coherence,
         )
@@ -989,6 +1019,66 @@ mod tests {
             c_fetches * 3 < fetches,
             "coherent rays fetched {c_fetches} chunks, against {fetches} fetching on each miss"
         );
+    }
+
+    #[test]
+    fn fewer_paths_in_flight_give_the_same_bits() {
+        let settings = RenderSettings {
+            width: 48,
+            height: 36,
+            spp: 12,
+            ..RenderSettings::default()
+        };
+        let rect = Rect {
+            x: 5,
+            y: 7,
+            width: 30,
+            height: 4,
+        };
+        let (header, data, camera) = scene();
+        let render = |paths: u32| {
+            let scarce = Scarce::new(data.clone(), 8);
+            let tracer = Tracer::new(&header, &scarce);
+            let (mut stats, mut coherence) = (TraceStats::default(), CoherenceStats::default());
+            let pixels = render_rect_coherent(
+                &tracer,
+                &camera,
+                &settings,
+                rect,
+                paths,
+                &mut stats,
+                &mut coherence,
+            )
+            .unwrap();
+            stats.add(&tracer.stats());
+            (bits(&pixels), stats, scarce.fetches.get())
+        };
+        // 1,440 paths: all in one batch, or in six of two samples a pixel.
+        let (all, few) = (
+            render(paths_in_flight(usize::MAX)),
+            render(paths_in_flight(0)),
+        );
+        assert_eq!(all.0, few.0);
+        assert_eq!(all.1, few.1);
+        assert!(
+            few.2 > all.2,
+            "fewer paths share each fetch: {} against {}",
+            few.2,
+            all.2
+        );
+    }
+
+    #[test]
+    fn paths_in_flight_fit_the_memory_given() {
+        assert_eq!(paths_in_flight(usize::MAX), MOST_PATHS_IN_FLIGHT);
+        assert_eq!(paths_in_flight(0), LEAST_PATHS_IN_FLIGHT);
+        let memory = 2 << 20;
+        let paths = paths_in_flight(memory);
+        assert!(paths as usize * PATH_IN_FLIGHT_BYTES <= memory);
+        assert!((paths as usize + 1) * PATH_IN_FLIGHT_BYTES > memory);
+        // A batch is whole rows, at least one.
+        assert_eq!(coherent_rows(320, 64, paths), 1);
+        assert_eq!(coherent_rows(32, 4, 1024), 8);
     }
 
     #[test]
