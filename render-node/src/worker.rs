@@ -210,11 +210,13 @@ pub struct Worker {
 }
 
 /// Memory a render node's rendering threads share for their paths in flight (coherent
-/// rays): half of what the node may hold beyond its cache's budget (8 MiB), the rest being
-/// its runtime, buffers and code. Over TCP with a small cache nearly every path waits at
-/// once, each with what its queries found, and 16,384 paths a thread took this node to 7.8
-/// MiB beyond its budget on one thread.
-const PATHS_MEMORY: usize = 4 << 20;
+/// rays): a quarter of what the node may hold beyond its cache's budget (8 MiB). The rest
+/// is its runtime, buffers and code, and the holes that fetching and evicting chunks leave
+/// in its heap (4.6 MiB free in a heap of 14.7 at cache 5% over TCP). Over TCP with a small
+/// cache nearly every path waits at once, each with what its queries found; spheres at cache
+/// 5% over TCP, one thread: 4 MiB of paths held the node at 14.3 to 14.7 MiB for a budget
+/// of 6.5, 2 MiB at 12.8 MiB, fetching 15% more for 5% more time.
+const PATHS_MEMORY: usize = 2 << 20;
 
 /// A request for work waits as long as the render lasts: an idle node is held until the end,
 /// in case a lost node's work comes back. (A lost host is noticed on the control connection.)
