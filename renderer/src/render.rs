@@ -314,7 +314,7 @@ const LEAST_PATHS_IN_FLIGHT: u32 = 256;
 /// What a path in flight can take at most: its state, and while it waits what its queries
 /// found (an allocation of its own), its index in two lists and an entry of the queue of
 /// what is wanted most.
-pub const PATH_IN_FLIGHT_BYTES: usize = size_of::<Flight>()
+const PATH_IN_FLIGHT_BYTES: usize = size_of::<Flight>()
     + size_of::<QueryMemo>()
     + 16
     + 2 * size_of::<u32>()
@@ -383,8 +383,9 @@ impl<F: Deferral> Drop for Deferring<'_, F> {
 /// from the state it started in, with the same numbers (the sampler's depend on the sample
 /// and the bounce only), and each pixel's samples are added in their order. Only the path
 /// tracer's bounces can wait; another integrator renders pixel by pixel, fetching as it goes.
-/// At most `paths` paths are in flight at once (see [`paths_in_flight`]), unless the rect
-/// has more pixels: one sample of each.
+/// At most `paths` paths are in flight at once (see [`paths_in_flight`]), unless the rect's
+/// pixels are too many for that: then one sample of each at a time, or with adaptive sampling
+/// one batch of each (the stop is decided after whole batches, as pixel by pixel).
 pub fn render_rect_coherent<D: SceneData + Deferral>(
     tracer: &Tracer<D>,
     camera: &Camera,
