@@ -212,7 +212,7 @@ pub struct Worker {
 /// Memory a render node's rendering threads share for their paths in flight (coherent
 /// rays): a quarter of what the node may hold beyond its cache's budget (8 MiB). The rest
 /// is its runtime, buffers and code, and the holes that fetching and evicting chunks leave
-/// in its heap (4.6 MiB free in a heap of 14.7 at cache 5% over TCP). Over TCP with a small
+/// in its heap (4.4 MiB free in a heap of 14.0 at cache 5% over TCP). Over TCP with a small
 /// cache nearly every path waits at once, each with what its queries found; spheres at cache
 /// 5% over TCP, one thread: 4 MiB of paths held the node at 14.3 to 14.7 MiB for a budget
 /// of 6.5, 2 MiB at 12.8 MiB, fetching 15% more for 5% more time.
