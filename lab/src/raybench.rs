@@ -2,10 +2,9 @@
 //! anyone can make, so that other engines can be measured on the same data in the same run
 //! (`bench/peers/embree.py` does that with Intel Embree).
 //!
-//! The mesh goes through the normal loader and [`renderer::prepare`], exactly as
-//! `render --in-process` prepares a scene (chunks, both tree levels, their walking form, moved
-//! into large pages by [`host::large_pages`]), and
-//! rays go through [`Tracer`], the interface every integrator calls. The same rays are then
+//! The mesh goes through the normal loader and is prepared exactly as `render --in-process`
+//! prepares a scene ([`host::large_pages::prepare`]: chunks, both tree levels, their walking
+//! forms built in large pages), and rays go through [`Tracer`], the interface every integrator calls. The same rays are then
 //! cast through a render node's cache ([`DemandCache`]) holding every chunk, which is what a
 //! cluster renders with.
 //!

@@ -21,6 +21,22 @@ pub trait BlockMut: Block {
     fn words_mut(&mut self) -> &mut [u32];
 }
 
+/// Places for parts of `lens` words one after the other in a block, each starting on a
+/// cache line (16 words) as a card's segment holds them, so that a walking form's nodes lie
+/// on whole lines: each part's words `start..end`, and the words the block needs.
+pub(crate) fn line_places(lens: impl IntoIterator<Item = usize>) -> (Vec<(usize, usize)>, usize) {
+    let mut end = 0usize;
+    let places = lens
+        .into_iter()
+        .map(|len| {
+            let start = end.next_multiple_of(16);
+            end = start + len;
+            (start, end)
+        })
+        .collect();
+    (places, end)
+}
+
 enum Keep<T> {
     Empty,
     Own(Box<[T]>),
@@ -207,13 +223,8 @@ pub(crate) mod testing {
     /// `parts` one after the other in a block, each at a 64-byte aligned place as a card's
     /// segment holds them; the block and each part's words `start..end`.
     pub fn aligned_block(parts: &[&[u32]]) -> (Arc<dyn Block>, Vec<(usize, usize)>) {
-        let mut places = Vec::new();
-        let mut at = 0;
-        for p in parts {
-            places.push((at, at + p.len()));
-            at = (at + p.len()).next_multiple_of(16);
-        }
-        let mut block = Lines::new(at);
+        let (places, end) = super::line_places(parts.iter().map(|p| p.len()));
+        let mut block = Lines::new(end);
         for (p, &(s, e)) in parts.iter().zip(&places) {
             block.words_mut()[s..e].copy_from_slice(p);
         }

@@ -950,27 +950,59 @@ mod tests {
             }
         }
         stats.add(&tracer.stats());
-
-        let scarce = Scarce::new(data, room);
-        let tracer = Tracer::new(&header, &scarce);
-        let mut c_stats = TraceStats::default();
-        let mut coherence = CoherenceStats::default();
-        let c_pixels = render_rect_coherent(
-            &tracer,
-            &camera,
+        let coherent = coherently(
+            (&header, data, &camera),
             settings,
             rect,
+            room,
             paths_in_flight(usize::MAX),
-            &mut c_stats,
+        );
+        ((pixels, stats, plain.fetches.get()), coherent)
+    }
+
+    /// Renders `rect` with coherent rays, `paths` in flight, from a cache of `room` chunks;
+    /// returns (pixels, stats, fetches, coherence).
+    fn coherently(
+        (header, data, camera): (&SceneHeader, MemoryData, &Camera),
+        settings: &RenderSettings,
+        rect: Rect,
+        room: usize,
+        paths: u32,
+    ) -> (Vec<[f32; 3]>, TraceStats, u64, CoherenceStats) {
+        let scarce = Scarce::new(data, room);
+        let tracer = Tracer::new(header, &scarce);
+        let mut stats = TraceStats::default();
+        let mut coherence = CoherenceStats::default();
+        let pixels = render_rect_coherent(
+            &tracer,
+            camera,
+            settings,
+            rect,
+            paths,
+            &mut stats,
             &mut coherence,
         )
         .unwrap();
-        c_stats.add(&tracer.stats());
+        stats.add(&tracer.stats());
         assert!(!scarce.deferring.get(), "deferral is off after the render");
-        (
-            (pixels, stats, plain.fetches.get()),
-            (c_pixels, c_stats, scarce.fetches.get(), coherence),
-        )
+        (pixels, stats, scarce.fetches.get(), coherence)
+    }
+
+    /// A small image and a rect of it of 1,440 paths (30 x 4 pixels at 12 spp).
+    fn small_rect() -> (RenderSettings, Rect) {
+        let settings = RenderSettings {
+            width: 48,
+            height: 36,
+            spp: 12,
+            ..RenderSettings::default()
+        };
+        let rect = Rect {
+            x: 5,
+            y: 7,
+            width: 30,
+            height: 4,
+        };
+        (settings, rect)
     }
 
     fn bits(p: &[[f32; 3]]) -> Vec<u32> {
@@ -995,18 +1027,7 @@ mod tests {
 
     #[test]
     fn coherent_rays_give_the_same_bits_and_fetch_less() {
-        let settings = RenderSettings {
-            width: 48,
-            height: 36,
-            spp: 12,
-            ..RenderSettings::default()
-        };
-        let rect = Rect {
-            x: 5,
-            y: 7,
-            width: 30,
-            height: 4,
-        };
+        let (settings, rect) = small_rect();
         let ((pixels, stats, fetches), (c_pixels, c_stats, c_fetches, coherence)) =
             both_ways(&settings, rect, 8);
         assert_eq!(bits(&pixels), bits(&c_pixels));
@@ -1024,35 +1045,12 @@ mod tests {
 
     #[test]
     fn fewer_paths_in_flight_give_the_same_bits() {
-        let settings = RenderSettings {
-            width: 48,
-            height: 36,
-            spp: 12,
-            ..RenderSettings::default()
-        };
-        let rect = Rect {
-            x: 5,
-            y: 7,
-            width: 30,
-            height: 4,
-        };
+        let (settings, rect) = small_rect();
         let (header, data, camera) = scene();
         let render = |paths: u32| {
-            let scarce = Scarce::new(data.clone(), 8);
-            let tracer = Tracer::new(&header, &scarce);
-            let (mut stats, mut coherence) = (TraceStats::default(), CoherenceStats::default());
-            let pixels = render_rect_coherent(
-                &tracer,
-                &camera,
-                &settings,
-                rect,
-                paths,
-                &mut stats,
-                &mut coherence,
-            )
-            .unwrap();
-            stats.add(&tracer.stats());
-            (bits(&pixels), stats, scarce.fetches.get())
+            let (pixels, stats, fetches, _) =
+                coherently((&header, data.clone(), &camera), &settings, rect, 8, paths);
+            (bits(&pixels), stats, fetches)
         };
         // 1,440 paths: all in one batch, or in six of two samples a pixel.
         let (all, few) = (

@@ -19,7 +19,7 @@ use crate::{
     chunk::{self, Chunk, MeshData},
     light::{Environment, Light, LightDistribution},
     material::Material,
-    region::{Block, BlockMut, Region},
+    region::{self, Block, BlockMut, Region},
     source::MemoryData,
     texture::{self, Filter, TextureInfo, Wrap},
 };
@@ -542,41 +542,44 @@ fn build_chunks(
 /// Builds the walking forms of `chunks` (which have none yet) into one block from `make`,
 /// `threads` at a time, and has the chunks walked there. A chunk whose form could not be
 /// placed (a block too small or misaligned; an empty one is how a caller declines) gets one
-/// of its own.
+/// of its own, built on those threads too.
 fn walks_in_block(chunks: &mut [Chunk], make: MakeBlock<'_>, threads: usize) {
-    let mut places = Vec::with_capacity(chunks.len());
-    let mut end = 0usize;
-    for c in chunks.iter() {
-        // 16 words: 64 bytes, so that each tree's nodes lie on whole cache lines.
-        let start = end.next_multiple_of(16);
-        end = start + c.walk_words_len();
-        places.push((start, end));
-    }
+    let (places, end) = region::line_places(chunks.iter().map(|c| c.walk_words_len()));
     let mut block = make(end);
     let words = block.words_mut();
-    let mut placed = vec![false; chunks.len()];
-    if words.len() >= end && (words.as_ptr() as usize).is_multiple_of(64) {
-        // Each chunk's own range, cut from the block in order.
-        let mut jobs = Vec::with_capacity(chunks.len());
-        let mut rest = &mut words[..end];
-        let mut at = 0;
-        for ((c, &(start, end)), done) in chunks.iter().zip(&places).zip(&mut placed) {
-            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
-            let (range, tail) = tail.split_at_mut(end - start);
-            rest = tail;
-            at = end;
-            jobs.push((c, range, done));
+    let usable = words.len() >= end && (words.as_ptr() as usize).is_multiple_of(64);
+    // Each chunk's own range, cut from the block in order, if the block can hold them.
+    let mut ranges: Vec<Option<&mut [u32]>> = Vec::with_capacity(chunks.len());
+    let mut rest = if usable { &mut words[..end] } else { &mut [] };
+    let mut at = 0;
+    for &(start, end) in &places {
+        if !usable {
+            ranges.push(None);
+            continue;
         }
-        let per = jobs.len().div_ceil(threads.max(1)).max(1);
-        std::thread::scope(|scope| {
-            for group in jobs.chunks_mut(per) {
-                scope.spawn(move || {
-                    for (c, range, done) in group {
-                        **done = c.transcode_into(range);
+        let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
+        let (range, tail) = tail.split_at_mut(end - start);
+        rest = tail;
+        at = end;
+        ranges.push(Some(range));
+    }
+    let mut placed = vec![false; chunks.len()];
+    let mut jobs: Vec<_> = chunks.iter_mut().zip(ranges).zip(&mut placed).collect();
+    let per = jobs.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|scope| {
+        for group in jobs.chunks_mut(per) {
+            scope.spawn(move || {
+                for ((c, range), done) in group {
+                    match range {
+                        Some(range) => **done = c.transcode_into(range),
+                        None => c.transcode(),
                     }
-                });
-            }
-        });
+                }
+            });
+        }
+    });
+    if !usable {
+        return;
     }
     let block: Arc<dyn BlockMut> = Arc::from(block);
     let block: Arc<dyn Block> = block;
