@@ -453,9 +453,11 @@ impl Bvh8 {
 const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 
 /// Which of the eight children the ray enters within [0, tmax], and where it enters.
-/// `tmax_wide` is tmax widened by [`WIDEN`].
+/// Far distances, `tmax` among them, are widened by [`WIDEN`] after their minimum is
+/// taken: rounding is monotonic, so that is the minimum of the widened distances, bit for
+/// bit, one multiplication later on the node's critical path instead of two.
 #[inline(always)]
-fn test_node(q: &RayQuery, n: &Node8, tmax_wide: F32x8) -> (u32, F32x8) {
+fn test_node(q: &RayQuery, n: &Node8, tmax: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
     let plane = |offset: usize, axis: usize, off: &[F32x8; 3]| {
         // SAFETY: `RayQuery::planes` are byte offsets of whole plane arrays within the six
@@ -466,8 +468,11 @@ fn test_node(q: &RayQuery, n: &Node8, tmax_wide: F32x8) -> (u32, F32x8) {
     let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
     let tf = [0, 1, 2].map(|k| plane(far[k], k, &q.far_off8));
     let tnear = tn[0].max(tn[1]).max(tn[2].max(F32x8::splat(0.0)));
-    let tfar = tf[0].min(tf[1]).min(tf[2]).mul(F32x8::splat(WIDEN));
-    let hit = tnear.le(tfar.min(tmax_wide));
+    let tfar = tf[0]
+        .min(tf[1])
+        .min(tf[2].min(tmax))
+        .mul(F32x8::splat(WIDEN));
+    let hit = tnear.le(tfar);
     (hit.bits() & 0xff, tnear)
 }
 
@@ -576,13 +581,14 @@ pub fn walk<const NEAREST_FIRST: bool>(
     }
     let mut stack = Stack::new();
     let mut cur = 0u32;
+    let mut limit = F32x8::splat(*tmax);
     let mut wide = *tmax * WIDEN;
     loop {
         if cur & LEAF == 0 {
             let Some(node) = nodes.get(cur as usize) else {
                 return;
             };
-            let (mask, tnear) = test_node(q, node, F32x8::splat(wide));
+            let (mask, tnear) = test_node(q, node, limit);
             if mask != 0 {
                 let a = (mask.trailing_zeros() & 7) as usize;
                 let rest = mask & (mask - 1);
@@ -637,6 +643,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
             if leaf(cur & !LEAF, tmax) == Visit::Stop {
                 return;
             }
+            limit = F32x8::splat(*tmax);
             wide = *tmax * WIDEN;
         }
         loop {
