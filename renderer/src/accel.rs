@@ -504,6 +504,53 @@ fn prefetch_child(nodes: &[Node8], c: u32, leaf_lines: &impl Fn(u32)) {
     }
 }
 
+/// A stack entry: the child reference in the low half, the entry distance's bits in the
+/// high half. Distances are >= 0, so entries order like their distances (ties by child).
+#[inline(always)]
+fn entry(child: u32, t: f32) -> u64 {
+    child as u64 | (t.to_bits() as u64) << 32
+}
+
+/// The first `n` (3 to 8) of `keys` ordered farthest first, so that pushed in that order
+/// the nearest is popped first. Three and four, the common counts, by sorting networks
+/// (compare and exchange without branches, whose outcome no predictor could guess);
+/// more by insertion.
+#[inline(always)]
+fn farthest_first(mut k: [u64; 8], n: usize) -> [u64; 8] {
+    #[inline(always)]
+    fn order(k: &mut [u64; 8], i: usize, j: usize) {
+        let (a, b) = (k[i], k[j]);
+        k[i] = a.max(b);
+        k[j] = a.min(b);
+    }
+    match n {
+        3 => {
+            order(&mut k, 0, 1);
+            order(&mut k, 1, 2);
+            order(&mut k, 0, 1);
+        }
+        4 => {
+            order(&mut k, 0, 1);
+            order(&mut k, 2, 3);
+            order(&mut k, 0, 2);
+            order(&mut k, 1, 3);
+            order(&mut k, 1, 2);
+        }
+        _ => {
+            for i in 1..n.min(8) {
+                let e = k[i];
+                let mut j = i;
+                while j > 0 && k[j - 1] < e {
+                    k[j] = k[j - 1];
+                    j -= 1;
+                }
+                k[j] = e;
+            }
+        }
+    }
+    k
+}
+
 /// A stack of (child, entry distance) for the walk, never initialised as a whole (it is
 /// needed once per ray and per chunk the ray enters).
 struct Stack {
@@ -524,33 +571,16 @@ impl Stack {
 
     #[inline(always)]
     fn push(&mut self, child: u32, t: f32) {
-        // A valid tree needs fewer entries than the stack holds; an entry beyond it would
-        // only be a subtree skipped, never memory written out of bounds.
-        if let Some(e) = self.entries.get_mut(self.len) {
-            e.write(child as u64 | (t.to_bits() as u64) << 32);
-            self.len += 1;
-        }
+        self.push_entry(entry(child, t));
     }
 
-    /// Sorts the entries from `base` up by entry distance, farthest first, so that the
-    /// nearest is popped first. Distances are >= 0, so their bits order like the numbers.
     #[inline(always)]
-    fn sort_from(&mut self, base: usize) {
-        let end = self.len.min(STACK);
-        for i in base + 1..end {
-            // SAFETY: every entry below `len` was written by `push`.
-            let e = unsafe { self.entries[i].assume_init() };
-            let mut j = i;
-            while j > base {
-                // SAFETY: as above, `base <= j - 1 < len`.
-                let prev = unsafe { self.entries[j - 1].assume_init() };
-                if prev >> 32 >= e >> 32 {
-                    break;
-                }
-                self.entries[j].write(prev);
-                j -= 1;
-            }
-            self.entries[j].write(e);
+    fn push_entry(&mut self, e: u64) {
+        // A valid tree needs fewer entries than the stack holds; an entry beyond it would
+        // only be a subtree skipped, never memory written out of bounds.
+        if let Some(slot) = self.entries.get_mut(self.len) {
+            slot.write(e);
+            self.len += 1;
         }
     }
 
@@ -616,17 +646,21 @@ pub fn walk<const NEAREST_FIRST: bool>(
                         continue;
                     }
                     // Three or more: onto the stack, then sorted there, nearest on top.
-                    let base = stack.len;
+                    let mut keys = [0u64; 8];
+                    let mut n = 0;
                     let mut m = mask;
                     while m != 0 {
                         let i = (m.trailing_zeros() & 7) as usize;
                         m &= m - 1;
                         prefetch_child(nodes, node.child[i], &leaf_lines);
-                        stack.push(node.child[i], t[i]);
+                        keys[n & 7] = entry(node.child[i], t[i]);
+                        n += 1;
                     }
-                    stack.sort_from(base);
-                    let Some((c, _)) = stack.pop() else { return };
-                    cur = c;
+                    let keys = farthest_first(keys, n);
+                    for &k in &keys[..n - 1] {
+                        stack.push_entry(k);
+                    }
+                    cur = keys[n - 1] as u32;
                 } else {
                     let mut m = rest;
                     while m != 0 {
@@ -1006,6 +1040,28 @@ mod tests {
         }
         fn vec(&mut self, scale: f32) -> Vec3 {
             Vec3::new(self.next(), self.next(), self.next()) * 2.0 * scale - scale
+        }
+    }
+
+    proptest::proptest! {
+        /// Children to visit come out farthest first, every one of them once, for each
+        /// count the walk sorts (the networks for three and four, insertion beyond).
+        #[test]
+        fn children_are_ordered_farthest_first(
+            t in proptest::collection::vec(0.0f32..8.0, 3..=8),
+            same in proptest::bool::ANY,
+        ) {
+            let mut keys = [0u64; 8];
+            for (i, &d) in t.iter().enumerate() {
+                // Equal distances too: they must keep both children.
+                let d = if same { d.floor() } else { d };
+                keys[i] = entry(i as u32, d);
+            }
+            let n = t.len();
+            let sorted = farthest_first(keys, n);
+            let mut want = keys[..n].to_vec();
+            want.sort_unstable_by(|a, b| b.cmp(a));
+            proptest::prop_assert_eq!(&sorted[..n], &want[..]);
         }
     }
 
