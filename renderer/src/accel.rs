@@ -753,11 +753,11 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let w = bx.mul(ay).sub(by.mul(ax));
     let zero = F32x4::zero();
     let undecided = u.eq(zero).or(v.eq(zero)).or(w.eq(zero)).bits();
-    let negative = u.lt(zero).or(v.lt(zero)).or(w.lt(zero)).bits();
-    let positive = u.gt(zero).or(v.gt(zero)).or(w.gt(zero)).bits();
     // Most triangles a ray is tested against lie beside it: their edge functions disagree
-    // in sign, and nothing below (the division least of all) can make them a hit.
-    let inside = !(negative & positive) & 0xf;
+    // in sign, and nothing below (the division least of all) can make them a hit. Sign bits
+    // say so in three operations where no edge function is zero (the undecided lanes, which
+    // the scalar test decides) and none is NaN (no hit: its determinant is NaN as well).
+    let inside = !u.signs_differ(v, w) & 0xf;
     // What the test answers before it knows any hit: the undecided lanes for the scalar test.
     let no_hits = |inv_det| Lanes {
         hits: 0,

@@ -199,6 +199,15 @@ mod imp {
         pub fn neg_mul_add(self, b: F32x4, c: F32x4) -> F32x4 {
             unsafe { F32x4(_mm_fnmadd_ps(self.0, b.0, c.0)) }
         }
+        /// Bit i set when lanes i of `self`, `b` and `c` do not all have the same sign bit
+        /// (zeros and NaNs count by their sign bit, as they are).
+        #[inline(always)]
+        pub fn signs_differ(self, b: F32x4, c: F32x4) -> u32 {
+            unsafe {
+                let d = _mm_or_ps(_mm_xor_ps(self.0, b.0), _mm_xor_ps(self.0, c.0));
+                _mm_movemask_ps(d) as u32
+            }
+        }
         /// The lanes with their sign bit flipped where `sign` has it set.
         #[inline(always)]
         pub fn xor_sign(self, sign: F32x4) -> F32x4 {
@@ -535,6 +544,15 @@ mod imp {
             F32x4(std::array::from_fn(|i| {
                 (-self.0[i]).mul_add(b.0[i], c.0[i])
             }))
+        }
+        #[inline(always)]
+        pub fn signs_differ(self, b: F32x4, c: F32x4) -> u32 {
+            (0..4)
+                .map(|i| {
+                    let (x, y, z) = (self.0[i].to_bits(), b.0[i].to_bits(), c.0[i].to_bits());
+                    (((x ^ y) | (x ^ z)) >> 31) << i
+                })
+                .fold(0, |m, b| m | b)
         }
         #[inline(always)]
         pub fn xor_sign(self, sign: F32x4) -> F32x4 {
