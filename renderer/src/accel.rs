@@ -645,7 +645,8 @@ pub fn walk<const NEAREST_FIRST: bool>(
                         cur = near;
                         continue;
                     }
-                    // Three or more: onto the stack, then sorted there, nearest on top.
+                    // Three or more: ordered in registers, the nearest taken next, the
+                    // others pushed so that the nearer of them are popped first.
                     let mut keys = [0u64; 8];
                     let mut n = 0;
                     let mut m = mask;
