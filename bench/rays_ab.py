@@ -17,7 +17,6 @@ import argparse
 import filecmp
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -26,17 +25,20 @@ OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "peers", "out")
 
 
 def rate(exe, mesh, rays, repeat, core, any_hit, hits):
+    """The best in-process rate of one `bench rays` run, from the report it writes."""
+    report = hits + ".json"
     cmd = ["taskset", "-c", str(core), exe, "bench", "rays", mesh, rays,
-           "--repeat", str(repeat), "--hits", hits]
+           "--repeat", str(repeat), "--hits", hits, "--json", report]
     if any_hit:
         cmd.append("--any-hit")
     run = subprocess.run(cmd, capture_output=True, text=True)
     if run.returncode != 0:
         sys.exit(f"failed ({run.returncode}): {' '.join(cmd)}\n{run.stderr[-2000:]}")
-    m = re.search(r"^in-process: best ([\d.]+) M rays/s", run.stdout + run.stderr, re.M)
-    if not m:
-        sys.exit(f"no in-process rate from: {' '.join(cmd)}")
-    return float(m.group(1))
+    try:
+        with open(report) as f:
+            return float(json.load(f)["in_process"]["best_mrays"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        sys.exit(f"no in-process rate in {report} ({e}) from: {' '.join(cmd)}")
 
 
 def main():

@@ -549,19 +549,17 @@ fn walks_in_block(chunks: &mut [Chunk], make: MakeBlock<'_>, threads: usize) {
     let words = block.words_mut();
     let usable = words.len() >= end && (words.as_ptr() as usize).is_multiple_of(64);
     // Each chunk's own range, cut from the block in order, if the block can hold them.
-    let mut ranges: Vec<Option<&mut [u32]>> = Vec::with_capacity(chunks.len());
-    let mut rest = if usable { &mut words[..end] } else { &mut [] };
-    let mut at = 0;
-    for &(start, end) in &places {
-        if !usable {
-            ranges.push(None);
-            continue;
+    let mut ranges: Vec<Option<&mut [u32]>> = (0..chunks.len()).map(|_| None).collect();
+    if usable {
+        let mut rest = &mut words[..end];
+        let mut at = 0;
+        for (&(start, end), slot) in places.iter().zip(&mut ranges) {
+            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
+            let (range, tail) = tail.split_at_mut(end - start);
+            rest = tail;
+            at = end;
+            *slot = Some(range);
         }
-        let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - at);
-        let (range, tail) = tail.split_at_mut(end - start);
-        rest = tail;
-        at = end;
-        ranges.push(Some(range));
     }
     let mut placed = vec![false; chunks.len()];
     let mut jobs: Vec<_> = chunks.iter_mut().zip(ranges).zip(&mut placed).collect();
