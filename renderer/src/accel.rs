@@ -37,9 +37,17 @@ use crate::{
 /// block in a chunk, a chunk in the top-level tree).
 pub const LEAF: u32 = 1 << 31;
 
-/// Far distances are widened by this factor (six units in the last place): the relative
-/// rounding of a plane distance and of the near distance it is compared with.
-const WIDEN: f32 = 1.0 + 3.0 * f32::EPSILON;
+/// Far distances are widened by this many units in the last place: the relative rounding of a
+/// plane distance and of the near distance it is compared with (`1 + 3 * EPSILON` as a
+/// factor, which moves a number by three to six units).
+const WIDEN_ULPS: i32 = 6;
+
+/// Whether a child entered at `t` is still worth a visit within `tmax`: the scalar form of
+/// [`test_node`]'s comparison.
+#[inline(always)]
+fn within(t: f32, tmax: f32) -> bool {
+    (tmax.to_bits() as i32).wrapping_add(WIDEN_ULPS + 1) > t.to_bits() as i32
+}
 
 /// Entries the walk's stack can need: at most seven pushes per level of a valid tree.
 const STACK: usize = 8 * MAX_DEPTH;
@@ -453,9 +461,15 @@ impl Bvh8 {
 const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 
 /// Which of the eight children the ray enters within [0, tmax], and where it enters.
-/// Far distances, `tmax` among them, are widened by [`WIDEN`] after their minimum is
-/// taken: rounding is monotonic, so that is the minimum of the widened distances, bit for
-/// bit, one multiplication later on the node's critical path instead of two.
+///
+/// Past the six plane distances everything is done on the distances' bits as integers
+/// ([`crate::simd`]), one cycle an operation instead of four: a node's test lies on the
+/// chain each step down the tree waits for. The near distance is clamped at zero, so its
+/// integer maximum is its float maximum; the far distance's integer minimum is the float
+/// minimum where no far distance is negative and negative where one is, and a box whose far
+/// side is behind the origin is missed either way. Widening the far distance by
+/// [`WIDEN_ULPS`] is an integer addition: rounding is monotonic, so widening the minimum
+/// widens each.
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, tmax: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
@@ -467,12 +481,11 @@ fn test_node(q: &RayQuery, n: &Node8, tmax: F32x8) -> (u32, F32x8) {
     };
     let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
     let tf = [0, 1, 2].map(|k| plane(far[k], k, &q.far_off8));
-    let tnear = tn[0].max(tn[1]).max(tn[2].max(F32x8::splat(0.0)));
-    let tfar = tf[0]
-        .min(tf[1])
-        .min(tf[2].min(tmax))
-        .mul(F32x8::splat(WIDEN));
-    let hit = tnear.le(tfar);
+    let tnear = tn[0]
+        .max_bits(tn[1])
+        .max_bits(tn[2].max_bits(F32x8::splat(0.0)));
+    let tfar = tf[0].min_bits(tf[1]).min_bits(tf[2].min_bits(tmax));
+    let hit = tnear.within_ulps(tfar, WIDEN_ULPS);
     (hit.bits() & 0xff, tnear)
 }
 
@@ -612,7 +625,6 @@ pub fn walk<const NEAREST_FIRST: bool>(
     let mut stack = Stack::new();
     let mut cur = 0u32;
     let mut limit = F32x8::splat(*tmax);
-    let mut wide = *tmax * WIDEN;
     loop {
         if cur & LEAF == 0 {
             let Some(node) = nodes.get(cur as usize) else {
@@ -679,13 +691,12 @@ pub fn walk<const NEAREST_FIRST: bool>(
                 return;
             }
             limit = F32x8::splat(*tmax);
-            wide = *tmax * WIDEN;
         }
         loop {
             let Some((c, t)) = stack.pop() else {
                 return;
             };
-            if !NEAREST_FIRST || t <= wide {
+            if !NEAREST_FIRST || within(t, *tmax) {
                 cur = c;
                 break;
             }
