@@ -54,14 +54,21 @@ const STACK: usize = 8 * MAX_DEPTH;
 
 /// Eight children: their boxes as planes (min x, max x, min y, max y, min z, max z; an empty
 /// slot has +inf minima and -inf maxima, which no ray enters) and references.
+///
+/// Inner children come first, in slots `0..inner`, and are the consecutive nodes
+/// `first..first + inner`; leaves follow, then empty slots (see [`relayout`]). The walk finds
+/// the node to go down to by adding the slot to `first`, without waiting for `child` to be
+/// read: one load less on the chain of dependent steps a ray's way down the tree is.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(64))]
 pub struct Node8 {
     pub planes: [[f32; 8]; 6],
     pub child: [u32; 8],
+    pub first: u32,
+    pub inner: u32,
     /// Fills the node to four cache lines' size explicitly, so that it has no padding bytes
     /// and can be written to and read from plain words (a card's shared memory).
-    pad: [u32; 8],
+    pad: [u32; 6],
 }
 
 // SAFETY: `repr(C)` of `f32` and `u32` arrays only, with the tail padding made an explicit
@@ -83,7 +90,9 @@ impl Node8 {
             [f32::NEG_INFINITY; 8],
         ],
         child: [0; 8],
-        pad: [0; 8],
+        first: 0,
+        inner: 0,
+        pad: [0; 6],
     };
 
     fn set(&mut self, slot: usize, child: u32, b: &Bounds) {
@@ -240,6 +249,78 @@ fn transcode(
     nodes
 }
 
+/// `nodes` (a tree of [`transcode`]'s, root first) renumbered breadth first, so that every
+/// node's inner children are consecutive nodes, and each node's slots ordered inner children
+/// first (in their slot order), then leaves, then empty slots; `first` and `inner` set to
+/// match. Boxes and references keep their meaning, so every query finds what it found
+/// before (closest hits are unique, and any-hit queries answer whether, not which). Nodes
+/// no root path reaches keep a place at the end, so the count stays what was promised; a
+/// node reached a second time (not a tree) is left out of the later parent.
+fn relayout(nodes: &[Node8]) -> Vec<Node8> {
+    let n = nodes.len();
+    if n == 0 {
+        return Vec::new();
+    }
+    let inner_child = |c: u32| (c & LEAF == 0 && c != 0 && (c as usize) < n).then_some(c as usize);
+    // Old indices in their new order, and the new parent of each.
+    let mut order = vec![0usize];
+    let mut parent = vec![u32::MAX];
+    let mut new_of = vec![u32::MAX; n];
+    new_of[0] = 0;
+    let mut at = 0;
+    while at < order.len() {
+        for &c in &nodes[order[at]].child {
+            if let Some(c) = inner_child(c)
+                && new_of[c] == u32::MAX
+            {
+                new_of[c] = order.len() as u32;
+                order.push(c);
+                parent.push(at as u32);
+            }
+        }
+        at += 1;
+    }
+    for (old, new) in new_of.iter_mut().enumerate() {
+        if *new == u32::MAX {
+            *new = order.len() as u32;
+            order.push(old);
+            parent.push(u32::MAX);
+        }
+    }
+    order
+        .iter()
+        .enumerate()
+        .map(|(new, &old)| {
+            let src = &nodes[old];
+            let bounds = |slot: usize| Bounds {
+                min: [0, 1, 2].map(|k| src.planes[2 * k][slot]),
+                max: [0, 1, 2].map(|k| src.planes[2 * k + 1][slot]),
+            };
+            let mut out = Node8::EMPTY;
+            let mut next = 0;
+            for slot in 0..8 {
+                if let Some(c) = inner_child(src.child[slot])
+                    && parent[new_of[c] as usize] == new as u32
+                {
+                    if next == 0 {
+                        out.first = new_of[c];
+                    }
+                    out.set(next, new_of[c], &bounds(slot));
+                    next += 1;
+                }
+            }
+            out.inner = next as u32;
+            for slot in 0..8 {
+                if src.child[slot] & LEAF != 0 {
+                    out.set(next, src.child[slot], &bounds(slot));
+                    next += 1;
+                }
+            }
+            out
+        })
+        .collect()
+}
+
 impl Bvh8 {
     /// How many leaf blocks [`Bvh8::for_chunk`] makes of a chunk's wire nodes (at most).
     fn leaf_count(wire: &[WideNode]) -> usize {
@@ -285,7 +366,7 @@ impl Bvh8 {
             Some((LEAF | (leaves.len() - 1) as u32, b))
         });
         Bvh8 {
-            nodes: nodes.into(),
+            nodes: relayout(&nodes).into(),
             leaves: leaves.into(),
             tris: positions.len() as u32,
         }
@@ -313,7 +394,7 @@ impl Bvh8 {
             Some(((nodes.len() - 1) as u32, node.bounds()))
         });
         Bvh8 {
-            nodes: nodes.into(),
+            nodes: relayout(&nodes).into(),
             leaves: Region::empty(),
             tris: 0,
         }
@@ -399,8 +480,9 @@ impl Bvh8 {
 
     /// Checks what [`Bvh8::in_block`] promises, and that the tree is no deeper than the walk's
     /// stack is made for (as `bvh::validate_tree` does for the wire form), with every child
-    /// after its parent, as our builder writes them. A slot whose child is node 0 (the root,
-    /// nobody's child) must be empty: boxes no ray enters.
+    /// after its parent, as our builder writes them, and inner children where
+    /// [`relayout`] puts them. A slot whose child is node 0 (the root, nobody's child) must be
+    /// empty: boxes no ray enters.
     fn validate(&self) -> Result<(), WalkFormError> {
         let bad = |what: String| Err(WalkFormError::NotATree(what));
         if self.nodes.is_empty() {
@@ -418,7 +500,17 @@ impl Bvh8 {
             if d == 0 {
                 continue; // not reached from the root: never walked
             }
+            let inner = n.inner as usize;
             for (slot, &c) in n.child.iter().enumerate() {
+                let is_inner = c & LEAF == 0 && c != 0;
+                if is_inner != (slot < inner)
+                    || (is_inner && u64::from(c) != u64::from(n.first) + slot as u64)
+                {
+                    return bad(format!(
+                        "node {i}: its inner children are not nodes {}.. in its first {inner} slots",
+                        n.first
+                    ));
+                }
                 if c & LEAF != 0 {
                     if (c & !LEAF) as usize >= self.leaves.len() {
                         return bad(format!(
@@ -635,7 +727,12 @@ pub fn walk<const NEAREST_FIRST: bool>(
                 let a = (mask.trailing_zeros() & 7) as usize;
                 let rest = mask & (mask - 1);
                 if rest == 0 {
-                    cur = node.child[a];
+                    // An inner child is `first + slot` (see `Node8`): no wait for `child`.
+                    cur = if a < node.inner as usize {
+                        node.first.wrapping_add(a as u32)
+                    } else {
+                        node.child[a]
+                    };
                     continue;
                 }
                 if NEAREST_FIRST {
@@ -1147,6 +1244,67 @@ mod tests {
         m
     }
 
+    /// Both kinds of tree are laid out as the walk expects (what `Bvh8::validate` checks),
+    /// and the layout keeps every node and every leaf: a chunk's tree, and a top-level tree
+    /// whose leaves hold several chunks (each such leaf a node of its own).
+    #[test]
+    fn trees_keep_inner_children_consecutive_and_first() {
+        let m = grid(60, 0.0);
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let bvh = chunk.accel();
+        assert!(
+            bvh.nodes.len() > 8,
+            "the test needs a tree of several levels"
+        );
+        bvh.validate().unwrap();
+        let leaf_refs = |b: &Bvh8| {
+            let mut r: Vec<u32> = b
+                .nodes
+                .iter()
+                .flat_map(|n| n.child)
+                .filter(|c| c & LEAF != 0)
+                .collect();
+            r.sort();
+            r
+        };
+        assert_eq!(
+            leaf_refs(bvh),
+            (0..bvh.leaves.len() as u32)
+                .map(|l| LEAF | l)
+                .collect::<Vec<_>>()
+        );
+
+        let boxes: Vec<([f32; 3], [f32; 3])> = (0..300)
+            .map(|i| {
+                let (x, y) = ((i % 20) as f32, (i / 20) as f32);
+                ([x, y, 0.0], [x + 1.5, y + 1.5, 1.0])
+            })
+            .collect();
+        let aabbs: Vec<obvhs::aabb::Aabb> = boxes
+            .iter()
+            .map(|(lo, hi)| obvhs::aabb::Aabb::new(glam::Vec3A::from(*lo), glam::Vec3A::from(*hi)))
+            .collect();
+        let wide = crate::bvh::Builder::default().build(&aabbs, 4);
+        let top = Bvh8::for_chunks(&wide.nodes, &wide.order, &boxes);
+        // `validate` is for a chunk's form (its leaves are blocks): the layout by hand.
+        for n in top.nodes.iter() {
+            for (slot, &c) in n.child.iter().enumerate() {
+                if (slot as u32) < n.inner {
+                    assert_eq!(c, n.first + slot as u32);
+                } else {
+                    assert!(c & LEAF != 0 || c == 0);
+                }
+            }
+        }
+        assert!(
+            top.nodes.len() > wide.nodes.len(),
+            "leaves of several chunks became nodes"
+        );
+        let chunks: Vec<u32> = leaf_refs(&top).iter().map(|c| c & !LEAF).collect();
+        assert_eq!(chunks, (0..300).collect::<Vec<u32>>());
+    }
+
     /// `words` at a 64-byte aligned place of a block, as a card's segment holds them.
     fn aligned_block(words: &[u32]) -> (Arc<dyn Block>, usize, usize) {
         let (block, places) = crate::region::testing::aligned_block(&[words]);
@@ -1204,6 +1362,14 @@ mod tests {
             n.child[other] = n.child[s];
         };
         assert!(matches!(refused(&twice, tris), WalkFormError::NotATree(_)));
+        // Inner children elsewhere than `first..` in the first slots (see `Node8`).
+        let moved = |b: &mut Bvh8| b.nodes.make_mut()[0].first += 1;
+        assert!(matches!(refused(&moved, tris), WalkFormError::NotATree(_)));
+        let fewer_inner = |b: &mut Bvh8| b.nodes.make_mut()[0].inner -= 1;
+        assert!(matches!(
+            refused(&fewer_inner, tris),
+            WalkFormError::NotATree(_)
+        ));
         let leaves = bvh.leaves.len() as u32;
         assert!(matches!(
             refused(&|b| set(b, LEAF | leaves), tris),
