@@ -56,9 +56,9 @@ const STACK: usize = 8 * MAX_DEPTH;
 /// slot has +inf minima and -inf maxima, which no ray enters) and references.
 ///
 /// Inner children come first, in slots `0..inner`, and are the consecutive nodes
-/// `first..first + inner`; leaves follow, then empty slots (see [`relayout`]). The walk finds
-/// the node to go down to by adding the slot to `first`, without waiting for `child` to be
-/// read: one load less on the chain of dependent steps a ray's way down the tree is.
+/// `first..first + inner`; leaves follow, then empty slots (transcoding lays trees out so).
+/// The walk finds the node to go down to by adding the slot to `first`, without waiting for
+/// `child` to be read: one load less on the chain of dependent steps a ray's way down is.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(64))]
 pub struct Node8 {
