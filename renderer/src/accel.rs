@@ -772,14 +772,18 @@ pub fn walk<const NEAREST_FIRST: bool>(
                     }
                     cur = keys[n - 1] as u32;
                 } else {
-                    let mut m = rest;
+                    // Any hit: the last slot first (a leaf where the node has one, see
+                    // `Node8`: a leaf can end the query, a subtree only leads to one), the
+                    // others pushed so that they are popped from the last slot down.
+                    let z = (31 - mask.leading_zeros()) as usize & 7;
+                    let mut m = mask & !(1 << z);
                     while m != 0 {
                         let i = (m.trailing_zeros() & 7) as usize;
                         m &= m - 1;
                         prefetch_child(nodes, node.child[i], &leaf_lines);
                         stack.push(node.child[i], 0.0);
                     }
-                    cur = node.child[a];
+                    cur = node.child[z];
                 }
                 continue;
             }
