@@ -29,7 +29,7 @@ use crate::{
     math::gamma,
     ray::RayQuery,
     region::{Block, Region},
-    simd::{F32x4, F32x8},
+    simd::{self, F32x4, F32x8},
     triangle::{self, TriHit},
 };
 
@@ -41,13 +41,6 @@ pub const LEAF: u32 = 1 << 31;
 /// plane distance and of the near distance it is compared with (`1 + 3 * EPSILON` as a
 /// factor, which moves a number by three to six units).
 const WIDEN_ULPS: i32 = 6;
-
-/// Whether a child entered at `t` is still worth a visit within `tmax`: the scalar form of
-/// [`test_node`]'s comparison.
-#[inline(always)]
-fn within(t: f32, tmax: f32) -> bool {
-    (tmax.to_bits() as i32).wrapping_add(WIDEN_ULPS + 1) > t.to_bits() as i32
-}
 
 /// Entries the walk's stack can need: at most seven pushes per level of a valid tree.
 const STACK: usize = 8 * MAX_DEPTH;
@@ -101,6 +94,16 @@ impl Node8 {
             self.planes[2 * k][slot] = b.min[k];
             self.planes[2 * k + 1][slot] = b.max[k];
         }
+    }
+
+    /// Whether the children lie as the walk expects (see [`Node8`]): slots `0..inner` hold
+    /// nodes `first..first + inner`, the others leaves or nothing.
+    fn children_in_place(&self) -> bool {
+        self.child.iter().enumerate().all(|(slot, &c)| {
+            let is_inner = c & LEAF == 0 && c != 0;
+            is_inner == (slot < self.inner as usize)
+                && (!is_inner || u64::from(c) == u64::from(self.first) + slot as u64)
+        })
     }
 
     /// The union of the children's boxes.
@@ -500,17 +503,13 @@ impl Bvh8 {
             if d == 0 {
                 continue; // not reached from the root: never walked
             }
-            let inner = n.inner as usize;
+            if !n.children_in_place() {
+                return bad(format!(
+                    "node {i}: its inner children are not nodes {}.. in its first {} slots",
+                    n.first, n.inner
+                ));
+            }
             for (slot, &c) in n.child.iter().enumerate() {
-                let is_inner = c & LEAF == 0 && c != 0;
-                if is_inner != (slot < inner)
-                    || (is_inner && u64::from(c) != u64::from(n.first) + slot as u64)
-                {
-                    return bad(format!(
-                        "node {i}: its inner children are not nodes {}.. in its first {inner} slots",
-                        n.first
-                    ));
-                }
                 if c & LEAF != 0 {
                     if (c & !LEAF) as usize >= self.leaves.len() {
                         return bad(format!(
@@ -797,7 +796,8 @@ pub fn walk<const NEAREST_FIRST: bool>(
             let Some((c, t)) = stack.pop() else {
                 return;
             };
-            if !NEAREST_FIRST || within(t, *tmax) {
+            // A child entered at `t` is still worth a visit: `test_node`'s comparison.
+            if !NEAREST_FIRST || simd::within_ulps(t, *tmax, WIDEN_ULPS) {
                 cur = c;
                 break;
             }
@@ -1254,8 +1254,7 @@ mod tests {
     #[test]
     fn trees_keep_inner_children_consecutive_and_first() {
         let m = grid(60, 0.0);
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         let bvh = chunk.accel();
         assert!(
             bvh.nodes.len() > 8,
@@ -1291,22 +1290,20 @@ mod tests {
             .collect();
         let wide = crate::bvh::Builder::default().build(&aabbs, 4);
         let top = Bvh8::for_chunks(&wide.nodes, &wide.order, &boxes);
-        // `validate` is for a chunk's form (its leaves are blocks): the layout by hand.
-        for n in top.nodes.iter() {
-            for (slot, &c) in n.child.iter().enumerate() {
-                if (slot as u32) < n.inner {
-                    assert_eq!(c, n.first + slot as u32);
-                } else {
-                    assert!(c & LEAF != 0 || c == 0);
-                }
-            }
-        }
+        // `validate` is for a chunk's form (its leaves are blocks): the layout node by node.
+        assert!(top.nodes.iter().all(Node8::children_in_place));
         assert!(
             top.nodes.len() > wide.nodes.len(),
             "leaves of several chunks became nodes"
         );
         let chunks: Vec<u32> = leaf_refs(&top).iter().map(|c| c & !LEAF).collect();
         assert_eq!(chunks, (0..300).collect::<Vec<u32>>());
+    }
+
+    /// One chunk of every triangle of `m`.
+    fn whole_chunk(m: &MeshData) -> Chunk {
+        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
+        build_chunk(m, &all, 0, 0).unwrap()
     }
 
     /// `words` at a 64-byte aligned place of a block, as a card's segment holds them.
@@ -1318,8 +1315,7 @@ mod tests {
     #[test]
     fn a_walking_form_written_as_words_is_walked_in_place_and_a_broken_one_refused() {
         let m = grid(40, 1.0);
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         let tris = chunk.tri_count();
         let bvh = chunk.accel();
         assert!(
@@ -1425,8 +1421,7 @@ mod tests {
         m.positions.extend(copy.positions);
         m.triangles
             .extend(copy.triangles.iter().map(|t| t.map(|v| v + base)));
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         let mut r = Lcg(3);
         for _ in 0..500 {
             let o = Vec3::new(r.next() * 12.0, r.next() * 12.0, 5.0);
@@ -1463,8 +1458,7 @@ mod tests {
             ]);
             m.triangles.push([base, base + 1, base + 2]);
         }
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         let depth = levels(&chunk.accel().nodes);
         assert!(depth > 16, "a tree of {depth} levels");
         let mut r = Lcg(5);
@@ -1531,8 +1525,7 @@ mod tests {
             .extend([Vec3::new(0.2, 0.1, 0.5), Vec3::new(0.9, 0.3, 0.4)]);
         m.positions.push(Vec3::new(0.5, 0.9, 0.6));
         m.triangles.push([4, 5, 6]);
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         assert_eq!(chunk.accel().leaves.len(), 1);
         let mut r = Lcg(11);
         let mut hits = 0;
@@ -1553,8 +1546,7 @@ mod tests {
     #[test]
     fn rays_that_are_not_finite_meet_nothing_and_the_walk_ends() {
         let m = grid(12, 1.0);
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = std::sync::Arc::new(build_chunk(&m, &all, 0, 0).unwrap());
+        let chunk = std::sync::Arc::new(whole_chunk(&m));
         assert!(
             chunk.accel().nodes.len() > 1,
             "the tree needs inner nodes with empty slots"
@@ -1604,8 +1596,7 @@ mod tests {
     #[test]
     fn any_hit_reports_each_triangle_once_and_only_real_hits() {
         let m = grid(6, 0.0);
-        let all: Vec<u32> = (0..m.triangles.len() as u32).collect();
-        let chunk = build_chunk(&m, &all, 0, 0).unwrap();
+        let chunk = whole_chunk(&m);
         let q = RayQuery::new(&Ray::infinite(Vec3::new(2.3, 3.7, 1.0), -Vec3::Z));
         let mut seen = Vec::new();
         chunk.for_each_hit(&q, f32::INFINITY, |tri, h| {

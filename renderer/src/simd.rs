@@ -491,9 +491,7 @@ mod imp {
         }
         #[inline(always)]
         pub fn within_ulps(self, far: F32x8, ulps: i32) -> M8 {
-            self.cmp(far, |a, f| {
-                (f.to_bits() as i32).wrapping_add(ulps + 1) > a.to_bits() as i32
-            })
+            self.cmp(far, |a, f| super::within_ulps(a, f, ulps))
         }
         #[inline(always)]
         fn map(self, f: impl Fn(f32) -> f32) -> F32x8 {
@@ -715,6 +713,14 @@ mod imp {
 }
 
 pub use imp::{F32x4, F32x8, M4, M8, U32x8};
+
+/// One lane of [`F32x8::within_ulps`]: whether `a`'s bit pattern is at most `ulps` above
+/// `far`'s, as signed integers (for `a` not negative, `a <= far` with `far` moved `ulps` units
+/// in the last place up; a negative `far` stays below).
+#[inline(always)]
+pub fn within_ulps(a: f32, far: f32, ulps: i32) -> bool {
+    (far.to_bits() as i32).wrapping_add(ulps + 1) > a.to_bits() as i32
+}
 
 /// Made first in a function whose 8-lane values spill to its stack frame (the ray queries,
 /// the diffuse wave's shading): it makes the compiler realign the frame to a cache line, and
