@@ -19,12 +19,37 @@ use std::{
 
 use protocol::{Frame, Message};
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+/// `count` distinct ports free now, below the kernel's ephemeral range. A port from that
+/// range (what binding port 0 gives) can be taken before its node binds it: the attackers'
+/// own connections use ephemeral ports, and one of them, open or in TIME_WAIT for a
+/// minute, makes the node's bind fail (this test once lost a render node that way).
+fn free_ports(count: usize) -> Vec<u16> {
+    let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|r| r.split_whitespace().next()?.parse::<u16>().ok())
+        .unwrap_or(32768);
+    let low = 10_000u16.min(ephemeral_low / 2);
+    let span = u32::from(ephemeral_low - low);
+    let mut state = (std::process::id()
+        ^ std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos()))
+        | 1;
+    let mut ports = Vec::new();
+    for _ in 0..10_000 {
+        if ports.len() == count {
+            return ports;
+        }
+        // xorshift: different runs (and test binaries running at once) try different ports.
+        state ^= state << 13;
+        state ^= state >> 17;
+        state ^= state << 5;
+        let port = low + (state % span) as u16;
+        if !ports.contains(&port) && TcpListener::bind(("127.0.0.1", port)).is_ok() {
+            ports.push(port);
+        }
+    }
+    panic!("fewer than {count} free ports in {low}..{ephemeral_low}");
 }
 
 fn bin(name: &str) -> std::path::PathBuf {
@@ -73,7 +98,9 @@ fn a_render_under_attack_completes_with_the_right_image() {
         .arg(&reference));
     assert!(o.status.success(), "{}", stderr(&o));
 
-    let host_port = free_port();
+    // One port for the host, then one for each node: the fork node, then four render nodes.
+    let ports = free_ports(6);
+    let host_port = ports[0];
     let host_addr = format!("127.0.0.1:{host_port}");
     let out = dir.join("attacked.pfm");
     let mut host_proc = Logged::start(
@@ -93,13 +120,12 @@ fn a_render_under_attack_completes_with_the_right_image() {
             .arg(&out)
             .env("MAGG_SECRET", "attack test secret"),
     );
-    let mut ports = vec![host_port];
+    let mut node_ports = ports[1..].iter();
     let mut nodes = Vec::new();
     for (role, count) in [("magg-fork-node", 1), ("magg-render-node", 4)] {
         for _ in 0..count {
-            let port = free_port();
-            ports.push(port);
-            nodes.push(
+            let port = node_ports.next().unwrap();
+            let node = Logged::start(
                 Command::new(bin(role))
                     .args([
                         "--join",
@@ -109,10 +135,9 @@ fn a_render_under_attack_completes_with_the_right_image() {
                         "--log",
                         "error",
                     ])
-                    .env("MAGG_SECRET", "attack test secret")
-                    .spawn()
-                    .unwrap(),
+                    .env("MAGG_SECRET", "attack test secret"),
             );
+            nodes.push((role, port, node));
         }
     }
     // Attack every port, over and over, until the render is over.
@@ -147,19 +172,31 @@ fn a_render_under_attack_completes_with_the_right_image() {
     let code = host_proc.wait_exit(Duration::from_secs(600));
     stop.store(true, Ordering::Relaxed);
     let rounds: usize = attackers.into_iter().map(|t| t.join().unwrap()).sum();
-    assert_eq!(
-        code,
-        Some(Some(0)),
-        "the render failed under attack: {}",
-        host_proc.log()
-    );
+    if code != Some(Some(0)) {
+        // The host logs every refused attack; what else it and the nodes said is the story.
+        let host_log: Vec<_> = host_proc
+            .log()
+            .lines()
+            .filter(|l| !l.contains("refused a connection from"))
+            .map(str::to_string)
+            .collect();
+        let node_logs: Vec<_> = nodes
+            .iter()
+            .map(|(role, port, n)| format!("{role} at port {port}:\n{}", n.log()))
+            .collect();
+        panic!(
+            "the render failed under attack (exit {code:?}); the host, less refused attacks:\n{}\n{}",
+            host_log.join("\n"),
+            node_logs.join("\n")
+        );
+    }
     assert!(rounds > 6, "the attacks should have run during the render");
     assert_eq!(
         std::fs::read(&out).unwrap(),
         std::fs::read(&reference).unwrap(),
         "the attacked render differs"
     );
-    for mut n in nodes {
-        let _ = n.wait();
+    for (_, _, mut n) in nodes {
+        let _ = n.child.wait();
     }
 }
