@@ -9,12 +9,14 @@
 //! * [`cluster`]: forming a cluster: registration with the host, addresses, links up.
 //! * [`role`]: the life every node role shares: join, take deliveries, obey the host, leave.
 //! * [`shm`]: a card's memory as a shared-memory segment, published and mapped, checked.
+//! * [`pages`]: memory in large pages, for the walking forms rays read.
 
 pub mod clock;
 pub mod cluster;
 pub mod diag;
 pub mod model;
 pub mod node;
+pub mod pages;
 pub mod registry;
 pub mod role;
 pub mod routing;

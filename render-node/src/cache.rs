@@ -42,7 +42,10 @@ use renderer::{
     texture::Tile,
 };
 
-use crate::shared::Mapped;
+use crate::{
+    forms::{self, FormArena},
+    shared::Mapped,
+};
 
 /// What a miss brings: words of this node's own, or an item's place in a card's mapping.
 enum Fetched {
@@ -205,6 +208,9 @@ pub struct DemandCache {
     /// bytes stay in the mapping). Eviction and the bytes counted as fetched are the
     /// paper's either way.
     validated_in_place: Mutex<Vec<Option<Chunk>>>,
+    /// Where the walking forms of chunks in this node's own memory go, when the budget is
+    /// large enough ([`crate::forms`]).
+    forms: Option<FormArena>,
     pub stats: CacheStats,
 }
 
@@ -230,6 +236,7 @@ impl DemandCache {
             budget,
             source,
             validated_in_place: Mutex::new(vec![None; chunks]),
+            forms: (budget >= forms::MIN_BUDGET).then(FormArena::default),
             stats: CacheStats::default(),
         }
     }
@@ -257,6 +264,7 @@ impl DemandCache {
         match id {
             DataId::Chunk(c) => {
                 let chunk = validate_chunk(&self.rules, c, Fetched::Words(words))?;
+                let chunk = self.in_large_pages(chunk);
                 let bytes = chunk.memory_bytes() as u64;
                 self.insert(&self.chunks, c, chunk, bytes, false)?;
             }
@@ -560,6 +568,30 @@ impl Drop for DemandCache {
 }
 
 impl DemandCache {
+    /// `chunk`, its walking form moved into large pages where this cache places forms there
+    /// and has room; as it was otherwise.
+    fn in_large_pages(&self, mut chunk: Chunk) -> Chunk {
+        let Some(arena) = &self.forms else {
+            return chunk;
+        };
+        let form = chunk.accel();
+        if let Some(place) = arena.place(form.words_len(), |out| form.write_words(out)) {
+            // Written from a form that was walked already, so it reads back; were it
+            // refused, the chunk would keep the form it has.
+            let moved = chunk.walk_in(place);
+            debug_assert!(
+                moved.is_ok(),
+                "a walking form copied into large pages: {moved:?}"
+            );
+        }
+        chunk
+    }
+
+    /// Bytes of large-page blocks alive and of the walking forms alive in them.
+    pub fn large_page_bytes(&self) -> (usize, usize) {
+        self.forms.as_ref().map_or((0, 0), FormArena::bytes)
+    }
+
     /// Chunk `id` walked where it lies in a card's mapping: validated the first time only.
     fn in_place(&self, id: u32, fetched: Fetched) -> Result<Chunk, DataError> {
         self.stats.in_place.fetch_add(1, Ordering::Relaxed);
@@ -772,7 +804,10 @@ impl Reader<'_> {
         self.fetched(fetched.word_count());
         let chunk = match fetched {
             Fetched::InPlace { .. } => self.cache.in_place(id, fetched)?,
-            Fetched::Words(_) => validate_chunk(&self.cache.rules, id, fetched)?,
+            Fetched::Words(_) => {
+                let chunk = validate_chunk(&self.cache.rules, id, fetched)?;
+                self.cache.in_large_pages(chunk)
+            }
         };
         let bytes = chunk.memory_bytes() as u64;
         let p = self
@@ -853,6 +888,55 @@ mod tests {
 
     fn glam_vec(x: f32, y: f32) -> glam::Vec3 {
         glam::Vec3::new(x, y, 0.0)
+    }
+
+    #[test]
+    fn a_large_cache_walks_forms_in_large_pages_and_finds_the_same_hits() {
+        use renderer::ray::{Ray, RayQuery};
+        let tris = 300;
+        let own = Chunk::from_words(chunk(0, tris)).unwrap();
+        let small = DemandCache::new(ChunkRules::new(vec![(0, tris)], 0), 0, 1 << 20, None);
+        let large = DemandCache::new(
+            ChunkRules::new(vec![(0, tris)], 0),
+            0,
+            forms::MIN_BUDGET,
+            None,
+        );
+        for cache in [&small, &large] {
+            cache.preload(DataId::Chunk(0), chunk(0, tris)).unwrap();
+        }
+        assert_eq!(
+            small.large_page_bytes(),
+            (0, 0),
+            "a small cache keeps the heap"
+        );
+        let (blocks, live) = large.large_page_bytes();
+        assert_eq!(live, own.accel().words_len() * 4);
+        assert!(blocks >= live);
+        let (small_reader, large_reader) = (small.reader(), large.reader());
+        let (in_heap, in_pages) = (
+            small_reader.chunk(0).unwrap(),
+            large_reader.chunk(0).unwrap(),
+        );
+        assert!(!in_heap.accel().nodes.is_shared() && in_pages.accel().nodes.is_shared());
+        assert_eq!(in_heap.memory_bytes(), in_pages.memory_bytes());
+        for i in 0..2 * tris {
+            let x = i as f32 * 0.5 + 0.25;
+            let ray = Ray::new(
+                glam::Vec3A::new(x, 0.2, 1.0),
+                glam::Vec3A::new(0.01, 0.02, -1.0),
+                f32::INFINITY,
+            );
+            let q = RayQuery::new(&ray);
+            let hit = |c: &Chunk| {
+                let mut t = f32::INFINITY;
+                c.intersect(&q, &mut t).map(|(tri, h)| (tri, h.t.to_bits()))
+            };
+            let want = hit(&own);
+            assert!(want.is_some() || i >= 2 * tris - 1, "ray {i} missed");
+            assert_eq!(hit(in_heap), want, "ray {i}");
+            assert_eq!(hit(in_pages), want, "ray {i}");
+        }
     }
 
     #[test]

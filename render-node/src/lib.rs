@@ -11,6 +11,7 @@
 //! the host asks, report its statistics, and run the host's measurements (`measure`).
 
 pub mod cache;
+pub mod forms;
 mod measure;
 pub mod shared;
 mod start;
