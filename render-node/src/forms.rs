@@ -5,7 +5,7 @@
 //! against in-process), and within 3 to 7% with the heap in large pages.
 //!
 //! Forms are placed one after another in blocks of [`BLOCK`] bytes ([`fabric::pages`]);
-//! each chunk holds its span ([`Span`], a `Block` of its own), and a block goes back to the
+//! each chunk holds its span (a `Block` of its own), and a block goes back to the
 //! system when its last span is dropped (its chunk evicted and freed). An evicted form's
 //! words are not reused: a cache that evicts leaves dead spans in blocks that live ones still
 //! hold. That waste is bounded ([`WASTE_LIMIT`]): past it, forms stay in the heap, as they
