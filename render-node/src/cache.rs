@@ -569,11 +569,15 @@ impl Drop for DemandCache {
 
 impl DemandCache {
     /// `chunk`, its walking form moved into large pages where this cache places forms there
-    /// and has room; as it was otherwise.
+    /// (see [`crate::forms`]: a large budget, and more than a few forms held already) and
+    /// has room; as it was otherwise.
     fn in_large_pages(&self, mut chunk: Chunk) -> Chunk {
         let Some(arena) = &self.forms else {
             return chunk;
         };
+        if self.used_bytes() < forms::MIN_HELD {
+            return chunk;
+        }
         let form = chunk.accel();
         if let Some(place) = arena.place(form.words_len(), |out| form.write_words(out)) {
             // Written from a form that was walked already, so it reads back; were it
@@ -893,30 +897,32 @@ mod tests {
     #[test]
     fn a_large_cache_walks_forms_in_large_pages_and_finds_the_same_hits() {
         use renderer::ray::{Ray, RayQuery};
-        let tris = 300;
+        let tris = 2000;
         let own = Chunk::from_words(chunk(0, tris)).unwrap();
-        let small = DemandCache::new(ChunkRules::new(vec![(0, tris)], 0), 0, 1 << 20, None);
-        let large = DemandCache::new(
-            ChunkRules::new(vec![(0, tris)], 0),
-            0,
-            forms::MIN_BUDGET,
-            None,
-        );
-        for cache in [&small, &large] {
-            cache.preload(DataId::Chunk(0), chunk(0, tris)).unwrap();
+        let held = forms::MIN_HELD / own.memory_bytes() as u64 + 1;
+        let rules = || ChunkRules::new(vec![(0, tris); held as usize + 1], 0);
+        let small = DemandCache::new(rules(), 0, 1 << 20, None);
+        let large = DemandCache::new(rules(), 0, forms::MIN_BUDGET, None);
+        small.preload(DataId::Chunk(0), chunk(0, tris)).unwrap();
+        for id in 0..=held as u32 {
+            large.preload(DataId::Chunk(id), chunk(id, tris)).unwrap();
         }
         assert_eq!(
             small.large_page_bytes(),
             (0, 0),
             "a small cache keeps the heap"
         );
+        // The forms of the first 8 MiB held stay in the heap; the next go to large pages.
         let (blocks, live) = large.large_page_bytes();
-        assert_eq!(live, own.accel().words_len() * 4);
-        assert!(blocks >= live);
+        let form = own.accel().words_len() * 4;
+        assert!(live >= form && live.is_multiple_of(form) && blocks >= live);
+        let reader = large.reader();
+        assert!(!reader.chunk(0).unwrap().accel().nodes.is_shared());
+        drop(reader);
         let (small_reader, large_reader) = (small.reader(), large.reader());
         let (in_heap, in_pages) = (
             small_reader.chunk(0).unwrap(),
-            large_reader.chunk(0).unwrap(),
+            large_reader.chunk(held as u32).unwrap(),
         );
         assert!(!in_heap.accel().nodes.is_shared() && in_pages.accel().nodes.is_shared());
         assert_eq!(in_heap.memory_bytes(), in_pages.memory_bytes());

@@ -9,8 +9,8 @@
 //! system when its last span is dropped (its chunk evicted and freed). An evicted form's
 //! words are not reused: a cache that evicts leaves dead spans in blocks that live ones still
 //! hold. That waste is bounded ([`WASTE_LIMIT`]): past it, forms stay in the heap, as they
-//! are where the cache is small (below [`MIN_BUDGET`]), so that a node stays within its
-//! budget plus what the cluster allows it.
+//! are where the cache is small (below [`MIN_BUDGET`]) and until it holds [`MIN_HELD`], so
+//! that a node stays within its budget plus what the cluster allows it.
 
 use std::sync::{
     Arc, Mutex,
@@ -28,6 +28,11 @@ pub const BLOCK: usize = 2 * LARGE_PAGE;
 /// The least cache budget that places forms in large pages: a block would be too large a
 /// part of a smaller one.
 pub const MIN_BUDGET: u64 = 64 << 20;
+
+/// What a cache holds before forms go to large pages: a TLB maps that much in small pages,
+/// and a node that receives only a few chunks (reading the rest in place in a card's
+/// memory) would otherwise fault in a 2 MiB page for a form of 200 KB.
+pub const MIN_HELD: u64 = 8 << 20;
 
 /// Most bytes of blocks that hold no live form (dead spans and the ends of blocks) before
 /// forms go to the heap instead.
