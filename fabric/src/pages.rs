@@ -38,11 +38,7 @@ impl LargePages {
     /// keeps what it has). Zero words give an empty value.
     pub fn new(words: usize) -> Option<LargePages> {
         if words == 0 {
-            return Some(LargePages {
-                ptr: NonNull::dangling(),
-                words: 0,
-                layout: None,
-            });
+            return Some(LargePages::empty());
         }
         let layout = words
             .checked_mul(4)
@@ -54,6 +50,15 @@ impl LargePages {
             words,
             layout: Some(layout),
         })
+    }
+
+    /// No words, and no mapping.
+    pub fn empty() -> LargePages {
+        LargePages {
+            ptr: NonNull::dangling(),
+            words: 0,
+            layout: None,
+        }
     }
 
     /// The first word. Valid for [`LargePages::len`] words while this value lives.

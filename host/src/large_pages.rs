@@ -16,9 +16,7 @@ impl LargePageWords {
     /// `words` zeroed words, or none at all if that much memory cannot be had (the caller
     /// then keeps what it has).
     pub fn new(words: usize) -> LargePageWords {
-        LargePageWords(
-            LargePages::new(words).unwrap_or_else(|| LargePages::new(0).expect("no words")),
-        )
+        LargePageWords(LargePages::new(words).unwrap_or_else(LargePages::empty))
     }
 }
 

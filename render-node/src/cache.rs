@@ -263,8 +263,7 @@ impl DemandCache {
     pub fn preload(&self, id: DataId, words: Box<[u32]>) -> Result<(), DataError> {
         match id {
             DataId::Chunk(c) => {
-                let chunk = validate_chunk(&self.rules, c, Fetched::Words(words))?;
-                let chunk = self.in_large_pages(chunk);
+                let chunk = self.own_chunk(c, Fetched::Words(words))?;
                 let bytes = chunk.memory_bytes() as u64;
                 self.insert(&self.chunks, c, chunk, bytes, false)?;
             }
@@ -568,15 +567,17 @@ impl Drop for DemandCache {
 }
 
 impl DemandCache {
-    /// `chunk`, its walking form moved into large pages where this cache places forms there
-    /// (see [`crate::forms`]: a large budget, and more than a few forms held already) and
-    /// has room; as it was otherwise.
-    fn in_large_pages(&self, mut chunk: Chunk) -> Chunk {
+    /// Chunk `id` in words of this node's own (received or preloaded), validated, its walking
+    /// form moved into large pages where this cache places forms there (see
+    /// [`crate::forms`]: a large budget, and more than a few forms held already) and has
+    /// room.
+    fn own_chunk(&self, id: u32, words: Fetched) -> Result<Chunk, DataError> {
+        let mut chunk = validate_chunk(&self.rules, id, words)?;
         let Some(arena) = &self.forms else {
-            return chunk;
+            return Ok(chunk);
         };
         if self.used_bytes() < forms::MIN_HELD {
-            return chunk;
+            return Ok(chunk);
         }
         let form = chunk.accel();
         if let Some(place) = arena.place(form.words_len(), |out| form.write_words(out)) {
@@ -588,7 +589,7 @@ impl DemandCache {
                 "a walking form copied into large pages: {moved:?}"
             );
         }
-        chunk
+        Ok(chunk)
     }
 
     /// Bytes of large-page blocks alive and of the walking forms alive in them.
@@ -808,10 +809,7 @@ impl Reader<'_> {
         self.fetched(fetched.word_count());
         let chunk = match fetched {
             Fetched::InPlace { .. } => self.cache.in_place(id, fetched)?,
-            Fetched::Words(_) => {
-                let chunk = validate_chunk(&self.cache.rules, id, fetched)?;
-                self.cache.in_large_pages(chunk)
-            }
+            Fetched::Words(_) => self.cache.own_chunk(id, fetched)?,
         };
         let bytes = chunk.memory_bytes() as u64;
         let p = self

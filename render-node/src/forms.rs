@@ -66,6 +66,20 @@ struct PageBlock {
     counts: Arc<Counts>,
 }
 
+impl PageBlock {
+    /// Counts `bytes` more of this block in `Counts::blocks`.
+    fn count(&self, bytes: usize) {
+        self.counted.fetch_add(bytes, Ordering::Relaxed);
+        self.counts.blocks.fetch_add(bytes, Ordering::Relaxed);
+    }
+
+    /// Counts the whole block, once no more forms go into it.
+    fn count_whole(&self) {
+        let whole = self.pages.len() * 4;
+        self.count(whole.saturating_sub(self.counted.load(Ordering::Relaxed)));
+    }
+}
+
 impl Drop for PageBlock {
     fn drop(&mut self) {
         let bytes = self.counted.load(Ordering::Relaxed);
@@ -115,50 +129,40 @@ impl FormArena {
             return None;
         }
         let mut current = self.current.lock().expect("form arena lock");
-        let fits = |c: &Option<(Arc<PageBlock>, usize)>| {
-            c.as_ref().and_then(|(b, next)| {
-                let start = next.next_multiple_of(ALIGN_WORDS);
-                (start + len <= b.pages.len()).then(|| (b.clone(), start))
-            })
-        };
-        let (block, start) = match fits(&current) {
-            Some(found) => found,
+        let fitting = current.as_ref().and_then(|(block, next)| {
+            let start = next.next_multiple_of(ALIGN_WORDS);
+            (start + len <= block.pages.len()).then_some(start)
+        });
+        let start = match fitting {
+            Some(start) => start,
             None => {
                 // The block being filled is done with: counted whole from now on, and gone
                 // at once if no form lives in it any more.
                 if let Some((old, _)) = current.take() {
-                    let whole = old.pages.len() * 4;
-                    let before = old.counted.swap(whole, Ordering::Relaxed);
-                    self.counts
-                        .blocks
-                        .fetch_add(whole - before, Ordering::Relaxed);
+                    old.count_whole();
                 }
                 if self.counts.waste() > WASTE_LIMIT {
                     return None;
                 }
-                let words = len.max(BLOCK / 4);
-                let block = Arc::new(PageBlock {
-                    pages: LargePages::new(words)?,
+                let block = PageBlock {
+                    pages: LargePages::new(len.max(BLOCK / 4))?,
                     counted: AtomicUsize::new(0),
                     counts: self.counts.clone(),
-                });
-                *current = Some((block.clone(), 0));
-                (block, 0)
+                };
+                *current = Some((Arc::new(block), 0));
+                0
             }
         };
-        let end = start + len;
-        // SAFETY: `start..end` lies within the block (checked above) and beyond every range
-        // handed out of it before (`next` only grows, under the lock): no span reads these
-        // words, and no one else writes them.
+        let (block, next) = current.as_mut().expect("a block being filled");
+        // SAFETY: `start..start + len` lies within the block (checked above) and beyond every
+        // range handed out of it before (`next` only grows, under the lock): no span reads
+        // these words, and no one else writes them.
         let out = unsafe { std::slice::from_raw_parts_mut(block.pages.as_ptr().add(start), len) };
         write(out);
-        let added = (end - current.as_ref().map_or(0, |(_, next)| *next)) * 4;
-        block.counted.fetch_add(added, Ordering::Relaxed);
-        self.counts.blocks.fetch_add(added, Ordering::Relaxed);
+        block.count((start + len - *next) * 4);
+        *next = start + len;
         self.counts.live.fetch_add(len * 4, Ordering::Relaxed);
-        if let Some((_, next)) = current.as_mut() {
-            *next = end;
-        }
+        let block = block.clone();
         let span: Arc<dyn Block> = Arc::new(Span { block, start, len });
         Some(WalkPlace {
             block: span,

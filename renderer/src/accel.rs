@@ -42,6 +42,13 @@ pub const LEAF: u32 = 1 << 31;
 /// factor, which moves a number by three to six units).
 const WIDEN_ULPS: i32 = 6;
 
+/// Whether child reference `c` names an inner node: not a leaf, and not 0 (the root, which
+/// is nobody's child: an empty slot).
+#[inline(always)]
+fn names_node(c: u32) -> bool {
+    c & LEAF == 0 && c != 0
+}
+
 /// Entries the walk's stack can need: at most seven pushes per level of a valid tree.
 const STACK: usize = 8 * MAX_DEPTH;
 
@@ -96,11 +103,19 @@ impl Node8 {
         }
     }
 
+    /// Slot `slot`'s box (what [`Node8::set`] wrote).
+    fn slot_bounds(&self, slot: usize) -> Bounds {
+        Bounds {
+            min: [0, 1, 2].map(|k| self.planes[2 * k][slot]),
+            max: [0, 1, 2].map(|k| self.planes[2 * k + 1][slot]),
+        }
+    }
+
     /// Whether the children lie as the walk expects (see [`Node8`]): slots `0..inner` hold
     /// nodes `first..first + inner`, the others leaves or nothing.
     fn children_in_place(&self) -> bool {
         self.child.iter().enumerate().all(|(slot, &c)| {
-            let is_inner = c & LEAF == 0 && c != 0;
+            let is_inner = names_node(c);
             is_inner == (slot < self.inner as usize)
                 && (!is_inner || u64::from(c) == u64::from(self.first) + slot as u64)
         })
@@ -264,7 +279,7 @@ fn relayout(nodes: &[Node8]) -> Vec<Node8> {
     if n == 0 {
         return Vec::new();
     }
-    let inner_child = |c: u32| (c & LEAF == 0 && c != 0 && (c as usize) < n).then_some(c as usize);
+    let inner_child = |c: u32| (names_node(c) && (c as usize) < n).then_some(c as usize);
     // Old indices in their new order, and the new parent of each.
     let mut order = vec![0usize];
     let mut parent = vec![u32::MAX];
@@ -295,10 +310,6 @@ fn relayout(nodes: &[Node8]) -> Vec<Node8> {
         .enumerate()
         .map(|(new, &old)| {
             let src = &nodes[old];
-            let bounds = |slot: usize| Bounds {
-                min: [0, 1, 2].map(|k| src.planes[2 * k][slot]),
-                max: [0, 1, 2].map(|k| src.planes[2 * k + 1][slot]),
-            };
             let mut out = Node8::EMPTY;
             let mut next = 0;
             for slot in 0..8 {
@@ -308,14 +319,14 @@ fn relayout(nodes: &[Node8]) -> Vec<Node8> {
                     if next == 0 {
                         out.first = new_of[c];
                     }
-                    out.set(next, new_of[c], &bounds(slot));
+                    out.set(next, new_of[c], &src.slot_bounds(slot));
                     next += 1;
                 }
             }
             out.inner = next as u32;
             for slot in 0..8 {
                 if src.child[slot] & LEAF != 0 {
-                    out.set(next, src.child[slot], &bounds(slot));
+                    out.set(next, src.child[slot], &src.slot_bounds(slot));
                     next += 1;
                 }
             }
@@ -1508,7 +1519,7 @@ mod tests {
         while let Some((i, d)) = work.pop() {
             deepest = deepest.max(d);
             for &c in &nodes[i].child {
-                if c & LEAF == 0 && c != 0 {
+                if names_node(c) {
                     work.push((c as usize, d + 1));
                 }
             }
