@@ -4,8 +4,10 @@
 //! triangles in leaf order; [`crate::bvh`]): good for the wire and for caches. Once a chunk
 //! has been validated it is transcoded, once, into [`Bvh8`]: nodes of eight children whose
 //! boxes are plain `f32` planes (one array per plane, so one 8-lane fused multiply-add per
-//! plane tests all eight children) and leaves of up to four triangles stored lane by lane
-//! ([`Tri4`], tested together). The boxes are computed from the triangles themselves, so
+//! plane tests all eight children) and leaves of one or two blocks of up to four triangles
+//! stored lane by lane ([`Tri4`], tested together; a leaf's two tests do not wait for each
+//! other, so a leaf of eight triangles costs little more than one of four, and saves the
+//! level of nodes that would split it). The boxes are computed from the triangles themselves, so
 //! they are exact and need no trust in the sender. The top-level tree over chunks is
 //! transcoded the same way, each of its leaves one chunk with that chunk's bounds, so a ray
 //! tests a chunk's box before touching it.
@@ -33,9 +35,13 @@ use crate::{
     triangle::{self, TriHit},
 };
 
-/// A child reference with this bit set is a leaf; the other bits index the leaf (a [`Tri4`]
-/// block in a chunk, a chunk in the top-level tree).
+/// A child reference with this bit set is a leaf; the other bits index the leaf (its first
+/// [`Tri4`] block in a chunk, with [`TWO_BLOCKS`]; a chunk in the top-level tree).
 pub const LEAF: u32 = 1 << 31;
+
+/// With [`LEAF`], in a chunk's tree: the leaf is two consecutive blocks (five to eight
+/// triangles), both tested.
+pub const TWO_BLOCKS: u32 = 1 << 30;
 
 /// Far distances are widened by this many units in the last place: the relative rounding of a
 /// plane distance and of the near distance it is compared with (`1 + 3 * EPSILON` as a
@@ -340,8 +346,11 @@ impl Bvh8 {
     fn leaf_count(wire: &[WideNode]) -> usize {
         wire.iter()
             .flatten()
-            .filter(|&&r| matches!(bvh::child(r), Child::Leaf { .. }))
-            .count()
+            .map(|&r| match bvh::child(r) {
+                Child::Leaf { count, .. } => count.div_ceil(4) as usize,
+                _ => 0,
+            })
+            .sum()
     }
 
     /// The words [`Bvh8::to_words`] gives for the chunk tree of these validated wire nodes,
@@ -358,26 +367,31 @@ impl Bvh8 {
         let mut leaves = Vec::with_capacity(leaf_count);
         let nodes = transcode(wire, |first, count, _| {
             let start = first as usize;
-            let tris = positions.get(start..start + count.min(4) as usize)?;
-            let mut block = Tri4 {
-                p: [[0.0; 4]; 9],
-                id: [first; 4],
-            };
+            let all = positions.get(start..start + count.min(8) as usize)?;
+            let at = leaves.len() as u32;
             let mut b = Bounds::EMPTY;
-            for lane in 0..4 {
-                let t = lane.min(tris.len() - 1);
-                for (c, v) in tris[t].iter().enumerate() {
-                    block.p[c][lane] = *v;
+            for (part, tris) in all.chunks(4).enumerate() {
+                let base = first + 4 * part as u32;
+                let mut block = Tri4 {
+                    p: [[0.0; 4]; 9],
+                    id: [base; 4],
+                };
+                for lane in 0..4 {
+                    let t = lane.min(tris.len() - 1);
+                    for (c, v) in tris[t].iter().enumerate() {
+                        block.p[c][lane] = *v;
+                    }
+                    block.id[lane] = base + t as u32;
                 }
-                block.id[lane] = first + t as u32;
-            }
-            for t in tris {
-                for v in 0..3 {
-                    b.add_point([t[3 * v], t[3 * v + 1], t[3 * v + 2]]);
+                for t in tris {
+                    for v in 0..3 {
+                        b.add_point([t[3 * v], t[3 * v + 1], t[3 * v + 2]]);
+                    }
                 }
+                leaves.push(block);
             }
-            leaves.push(block);
-            Some((LEAF | (leaves.len() - 1) as u32, b))
+            let two = if all.len() > 4 { TWO_BLOCKS } else { 0 };
+            Some((LEAF | two | at, b))
         });
         Bvh8 {
             nodes: relayout(&nodes).into(),
@@ -522,7 +536,8 @@ impl Bvh8 {
             }
             for (slot, &c) in n.child.iter().enumerate() {
                 if c & LEAF != 0 {
-                    if (c & !LEAF) as usize >= self.leaves.len() {
+                    let (at, blocks) = leaf_blocks(c & !LEAF);
+                    if at as usize + blocks > self.leaves.len() {
                         return bad(format!(
                             "node {i} names leaf {} of {}",
                             c & !LEAF,
@@ -816,6 +831,12 @@ pub fn walk<const NEAREST_FIRST: bool>(
     }
 }
 
+/// A chunk leaf's first block and its number of blocks.
+#[inline(always)]
+fn leaf_blocks(leaf: u32) -> (u32, usize) {
+    (leaf & !TWO_BLOCKS, 1 + (leaf & TWO_BLOCKS != 0) as usize)
+}
+
 /// What the four-lane triangle test found.
 struct Lanes {
     /// Lanes that hit within (0, tmax], their rounding bound cleared.
@@ -1076,8 +1097,9 @@ impl Bvh8 {
     /// Asks for the lines of leaf block `leaf` (the walk's `leaf_lines` for a chunk's tree).
     #[inline(always)]
     fn prefetch_leaf(&self, leaf: u32) {
-        if let Some(b) = self.leaves.get(leaf as usize) {
-            prefetch_lines(b, size_of::<Tri4>());
+        let (at, blocks) = leaf_blocks(leaf);
+        if let Some(b) = self.leaves.get(at as usize) {
+            prefetch_lines(b, blocks * size_of::<Tri4>());
         }
     }
 
@@ -1105,11 +1127,16 @@ impl Bvh8 {
             &mut tmax,
             |l| self.prefetch_leaf(l),
             |leaf, tmax| {
-                if let Some(b) = self.leaves.get(leaf as usize)
-                    && closest_in_leaf(q, b, self.tris, chunk, best, &mut accept)
-                {
-                    *tmax = best.t;
-                    found = true;
+                let (at, blocks) = leaf_blocks(leaf);
+                if let Some(b) = self.leaves.get(at as usize..at as usize + blocks) {
+                    let mut hit = closest_in_leaf(q, &b[0], self.tris, chunk, best, &mut accept);
+                    if blocks == 2 {
+                        hit |= closest_in_leaf(q, &b[1], self.tris, chunk, best, &mut accept);
+                    }
+                    if hit {
+                        *tmax = best.t;
+                        found = true;
+                    }
                 }
                 Visit::Continue
             },
@@ -1134,9 +1161,21 @@ impl Bvh8 {
             q,
             &mut t,
             |l| self.prefetch_leaf(l),
-            |leaf, _| match self.leaves.get(leaf as usize) {
-                Some(b) => hits_in_leaf(q, b, self.tris, tmax, &mut f),
-                None => Visit::Continue,
+            |leaf, _| {
+                let (at, blocks) = leaf_blocks(leaf);
+                match self.leaves.get(at as usize..at as usize + blocks) {
+                    Some(b) => {
+                        if hits_in_leaf(q, &b[0], self.tris, tmax, &mut f) == Visit::Stop {
+                            return Visit::Stop;
+                        }
+                        if blocks == 2 {
+                            hits_in_leaf(q, &b[1], self.tris, tmax, &mut f)
+                        } else {
+                            Visit::Continue
+                        }
+                    }
+                    None => Visit::Continue,
+                }
             },
         );
     }
@@ -1272,22 +1311,19 @@ mod tests {
             "the test needs a tree of several levels"
         );
         bvh.validate().unwrap();
-        let leaf_refs = |b: &Bvh8| {
-            let mut r: Vec<u32> = b
-                .nodes
-                .iter()
-                .flat_map(|n| n.child)
-                .filter(|c| c & LEAF != 0)
-                .collect();
-            r.sort();
-            r
-        };
-        assert_eq!(
-            leaf_refs(bvh),
-            (0..bvh.leaves.len() as u32)
-                .map(|l| LEAF | l)
-                .collect::<Vec<_>>()
-        );
+        // Every block is in exactly one leaf (of one block or two).
+        let mut blocks: Vec<u32> = bvh
+            .nodes
+            .iter()
+            .flat_map(|n| n.child)
+            .filter(|c| c & LEAF != 0)
+            .flat_map(|c| {
+                let (at, count) = leaf_blocks(c & !LEAF);
+                at..at + count as u32
+            })
+            .collect();
+        blocks.sort();
+        assert_eq!(blocks, (0..bvh.leaves.len() as u32).collect::<Vec<_>>());
 
         let boxes: Vec<([f32; 3], [f32; 3])> = (0..300)
             .map(|i| {
@@ -1307,7 +1343,14 @@ mod tests {
             top.nodes.len() > wide.nodes.len(),
             "leaves of several chunks became nodes"
         );
-        let chunks: Vec<u32> = leaf_refs(&top).iter().map(|c| c & !LEAF).collect();
+        let mut chunks: Vec<u32> = top
+            .nodes
+            .iter()
+            .flat_map(|n| n.child)
+            .filter(|c| c & LEAF != 0)
+            .map(|c| c & !LEAF)
+            .collect();
+        chunks.sort();
         assert_eq!(chunks, (0..300).collect::<Vec<u32>>());
     }
 
@@ -1451,6 +1494,63 @@ mod tests {
             }
             assert_eq!(got.map(|(i, h)| (h.t, i)), brute);
         }
+    }
+
+    /// Leaves of five to eight triangles are two blocks, and the walks test both: rays at a
+    /// chunk with many such leaves find what brute force finds, nearest and every hit, and
+    /// many of the nearest lie in second blocks.
+    #[test]
+    fn leaves_of_two_blocks_find_what_brute_force_finds() {
+        // Clusters of six overlapping triangles, one a unit cell, each triangle spanning
+        // nearly the cluster's box: a leaf of two blocks costs less than two leaves.
+        let mut m = MeshData::default();
+        let mut r = Lcg(7);
+        for cell in 0..24 * 24 {
+            let (x, y) = ((cell % 24) as f32 + 0.2, (cell / 24) as f32 + 0.2);
+            for _ in 0..6 {
+                let base = m.positions.len() as u32;
+                let mut jitter = |dx: f32, dy: f32| {
+                    let (jx, jy, z) = (r.next() * 0.05, r.next() * 0.05, r.next() * 0.2);
+                    m.positions.push(Vec3::new(x + dx + jx, y + dy + jy, z));
+                };
+                jitter(0.0, 0.0);
+                jitter(0.6, 0.0);
+                jitter(0.0, 0.6);
+                m.triangles.push([base, base + 1, base + 2]);
+            }
+        }
+        let chunk = whole_chunk(&m);
+        let a = chunk.accel();
+        let mut in_second = std::collections::HashSet::new();
+        for c in a.nodes.iter().flat_map(|n| n.child) {
+            if c & LEAF != 0 && c & TWO_BLOCKS != 0 {
+                in_second.extend(a.leaves[((c & !LEAF & !TWO_BLOCKS) + 1) as usize].id);
+            }
+        }
+        assert!(
+            in_second.len() > 100,
+            "{} triangles in second blocks",
+            in_second.len()
+        );
+        let mut r = Lcg(11);
+        let mut nearest_in_second = 0;
+        for _ in 0..2000 {
+            // At a random cell's triangles, from above, a little tilted.
+            let cell = Vec3::new((r.next() * 24.0).floor(), (r.next() * 24.0).floor(), 0.0);
+            let aim = cell + Vec3::new(0.3 + r.next() * 0.2, 0.3 + r.next() * 0.2, 0.1);
+            let d = Vec3::new(r.next() - 0.5, r.next() - 0.5, -4.0).normalize();
+            let o = aim - d * 3.0;
+            let q = RayQuery::new(&Ray::infinite(o, d));
+            if finds_what_brute_force_finds(&chunk, &q) {
+                let mut tmax = f32::INFINITY;
+                let tri = chunk.intersect(&q, &mut tmax).map(|(i, _)| i);
+                nearest_in_second += usize::from(tri.is_some_and(|i| in_second.contains(&i)));
+            }
+        }
+        assert!(
+            nearest_in_second > 40,
+            "{nearest_in_second} nearest in second blocks"
+        );
     }
 
     /// A deep tree (triangles at exponentially growing distances nest their boxes one in

@@ -1,7 +1,7 @@
 //! Building trees (with obvhs) and their compact form on the wire.
 //!
 //! A chunk's tree travels as its shape only: nodes of eight child references, each an
-//! inner node, a leaf of one to four triangles (consecutive in the chunk's leaf order), or
+//! inner node, a leaf of one to eight triangles (consecutive in the chunk's leaf order), or
 //! nothing. No boxes travel: the receiver computes them from the triangles themselves when
 //! it transcodes the tree into the form rays walk ([`crate::accel`]), so they are exact and
 //! need no trust in the sender, and a node costs 32 bytes on the wire. [`validate_tree`]
@@ -12,9 +12,9 @@
 //! programming over the binary tree (Ylitie, Karras and Laine, "Efficient Incoherent Ray
 //! Traversal on GPUs Through Compressed Wide BVHs", 2017): for every binary node and every
 //! number of slots from one to eight, the cheapest way to represent its subtree in that many
-//! child slots, each slot a leaf of up to four primitives (one four-lane test) or a wide
-//! node. Deterministic: obvhs is used without its parallel feature, and ties keep the first
-//! choice, so the same boxes give the same tree.
+//! child slots, each slot a leaf of up to eight primitives (one four-lane test, or two for
+//! more than four) or a wide node. Deterministic: obvhs is used without its parallel
+//! feature, and ties keep the first choice, so the same boxes give the same tree.
 
 use obvhs::{
     BvhBuildParams,
@@ -27,7 +27,7 @@ use obvhs::{
 pub const MAX_DEPTH: usize = 48;
 
 /// Children of one wide node: [`EMPTY`], an inner node index (bit 31 clear), or a leaf
-/// ([`LEAF`] set; bits 2..31 the first primitive, bits 0..2 the count less one).
+/// ([`LEAF`] set; bits 3..31 the first primitive, bits 0..3 the count less one).
 pub type WideNode = [u32; 8];
 
 /// A child slot with nothing in it.
@@ -36,13 +36,15 @@ pub const EMPTY: u32 = u32::MAX;
 /// The bit that marks a leaf child.
 pub const LEAF: u32 = 1 << 31;
 
-/// Most primitives in one leaf: one four-lane triangle test.
-pub const MAX_LEAF: u32 = 4;
+/// Most primitives in one leaf: two four-lane triangle tests.
+pub const MAX_LEAF: u32 = 8;
 
-/// A leaf child reference, or `None` when `first` does not fit.
+/// A leaf child reference, or `None` when `first` does not fit (or the two would spell
+/// [`EMPTY`]: eight primitives from the highest first that fits).
 pub fn leaf(first: u32, count: u32) -> Option<u32> {
-    (first < (1 << 29) && (1..=MAX_LEAF).contains(&count))
-        .then(|| LEAF | (first << 2) | (count - 1))
+    (first < (1 << 28) && (1..=MAX_LEAF).contains(&count))
+        .then(|| LEAF | (first << 3) | (count - 1))
+        .filter(|&r| r != EMPTY)
 }
 
 /// What a child reference holds.
@@ -61,8 +63,8 @@ pub fn child(r: u32) -> Child {
         Child::Node(r)
     } else {
         Child::Leaf {
-            first: (r & !LEAF) >> 2,
-            count: (r & 3) + 1,
+            first: (r & !LEAF) >> 3,
+            count: (r & 7) + 1,
         }
     }
 }
@@ -79,7 +81,25 @@ pub struct WideTree {
 const NODE_COST: f64 = 1.0;
 const LEAF_COST: f64 = 1.0;
 
-/// Builds a tree over boxes with at most `max_leaf` (1 to 4) primitives a leaf.
+/// What a leaf's second four-lane test (five to eight primitives) adds to its cost: less
+/// than the first, as the two tests do not wait for each other, where each node test on the
+/// way down waits for the one before. Measured on the 1M-triangle landscape of
+/// `bench/peers/embree.py` (`bench/rays_ab.py` against leaves of at most four): with 0.25,
+/// random rays 4 to 8% faster but diffuse ones 3 to 4% slower (a ray leaving a surface
+/// starts inside more, larger leaf boxes); with 0.5, random 5 to 9% faster and the other
+/// sets level.
+const SECOND_BLOCK_COST: f64 = 0.5;
+
+/// The expected cost of a leaf of `prims` primitives, per unit of its box's area.
+fn leaf_cost(prims: u32) -> f64 {
+    if prims > 4 {
+        LEAF_COST + SECOND_BLOCK_COST
+    } else {
+        LEAF_COST
+    }
+}
+
+/// Builds a tree over boxes with at most `max_leaf` (1 to 8) primitives a leaf.
 pub fn build(boxes: &[Aabb], max_leaf: u32) -> WideTree {
     Builder::default().build(boxes, max_leaf)
 }
@@ -95,7 +115,7 @@ pub struct Builder {
 }
 
 impl Builder {
-    /// A tree over `boxes` with at most `max_leaf` (1 to 4) primitives a leaf.
+    /// A tree over `boxes` with at most `max_leaf` (1 to 8) primitives a leaf.
     pub fn build(&mut self, boxes: &[Aabb], max_leaf: u32) -> WideTree {
         if boxes.is_empty() {
             return WideTree {
@@ -172,7 +192,7 @@ struct Collapser {
 
 impl Collapser {
     /// The wide tree of least expected cost for the binary subtree at `root`, with at most
-    /// `max_leaf` (1 to 4) primitives a leaf; its order holds the input's primitive indices.
+    /// `max_leaf` (1 to 8) primitives a leaf; its order holds the input's primitive indices.
     fn collapse(&mut self, b: &Bvh2, root: usize, max_leaf: u32) -> WideTree {
         let n = b.nodes.len();
         // Every entry of the subtree is written before it is read: no need to clear.
@@ -198,7 +218,7 @@ impl Collapser {
             if n[i].prim_count != 0 {
                 self.prims[i] = n[i].prim_count;
                 let leaf = if self.prims[i] <= max_leaf {
-                    area * LEAF_COST
+                    area * leaf_cost(self.prims[i])
                 } else {
                     f64::INFINITY
                 };
@@ -223,7 +243,7 @@ impl Collapser {
             let as_node = area * NODE_COST + distribute[7].0;
             self.node_split[i] = distribute[7].1;
             let as_leaf = if self.prims[i] <= max_leaf {
-                area * LEAF_COST
+                area * leaf_cost(self.prims[i])
             } else {
                 f64::INFINITY
             };
@@ -294,7 +314,7 @@ impl Collapser {
                 emit_leaf(b, k, out);
                 let count = out.order.len() as u32 - first;
                 // The plan makes leaves of at most MAX_LEAF primitives.
-                leaf(first, count).expect("planned leaves hold at most four primitives")
+                leaf(first, count).expect("planned leaves hold at most eight primitives")
             } else {
                 self.emit_node(b, k, out)
             };
@@ -406,7 +426,7 @@ mod tests {
     }
 
     /// Boxes far apart enough that their areas overflow f32 (a mesh spanning 1e30 units)
-    /// still make a tree of leaves of at most four: the builder once chose a leaf of every
+    /// still make a tree of leaves of at most eight: the builder once chose a leaf of every
     /// primitive below a node whose cost had become infinite, and panicked emitting it.
     #[test]
     fn boxes_whose_areas_overflow_f32_still_build() {
@@ -417,7 +437,7 @@ mod tests {
             })
             .collect();
         assert!(b[299].half_area().is_infinite());
-        let t = build(&b, 4);
+        let t = build(&b, MAX_LEAF);
         assert!(validate_tree(&t.nodes, b.len()).is_ok());
         let mut order = t.order.clone();
         order.sort();
@@ -427,7 +447,7 @@ mod tests {
     #[test]
     fn every_primitive_is_in_exactly_one_leaf() {
         for n in [1, 2, 3, 4, 5, 9, 100, 1000] {
-            let t = build(&boxes(n), 4);
+            let t = build(&boxes(n), MAX_LEAF);
             assert!(validate_tree(&t.nodes, n).is_ok(), "{n} boxes");
             let mut seen = vec![0; n];
             for &p in &t.order {
@@ -446,6 +466,22 @@ mod tests {
             }
             assert!(covered.iter().all(|&c| c == 1), "{n} boxes");
         }
+    }
+
+    /// Every count a leaf may hold, at the lowest and highest first primitive, reads back as
+    /// written; what does not fit is refused, not wrapped.
+    #[test]
+    fn leaf_references_read_back() {
+        for count in 1..=MAX_LEAF {
+            for first in [0, 1, (1 << 28) - 2] {
+                let r = leaf(first, count).unwrap();
+                assert_eq!(child(r), Child::Leaf { first, count });
+            }
+        }
+        assert_eq!(leaf((1 << 28) - 1, MAX_LEAF), None);
+        assert_eq!(leaf(0, 0), None);
+        assert_eq!(leaf(0, MAX_LEAF + 1), None);
+        assert_eq!(leaf(1 << 28, 1), None);
     }
 
     #[test]
