@@ -571,7 +571,9 @@ pub struct MeshData {
 /// Cuts `mesh` into spatially coherent pieces of at most `max_tris` triangles: triangles are
 /// ordered along a Morton curve of their centroids, then the order is split recursively at
 /// the highest bit in which the codes differ (an octree's planes, one axis at a time), so
-/// every piece is a box of the octree, or part of one. Deterministic.
+/// every piece is a box of the octree, or part of one. The octree's cells are cubes (one
+/// scale for the three axes): a flat mesh, such as a terrain, is cut into tiles, not into
+/// layers of its height that a ray leaving the surface would all cross. Deterministic.
 pub fn split_mesh(mesh: &MeshData, max_tris: usize) -> Vec<Vec<u32>> {
     let max_tris = max_tris.max(1);
     let centroid = |t: &[u32; 3]| {
@@ -586,7 +588,8 @@ pub fn split_mesh(mesh: &MeshData, max_tris: usize) -> Vec<Vec<u32>> {
         lo = lo.min(c);
         hi = hi.max(c);
     }
-    let scale = ((1u32 << 10) - 1) as f32 / (hi - lo).max(Vec3::splat(f32::MIN_POSITIVE));
+    let scale =
+        Vec3::splat(((1u32 << 10) - 1) as f32 / (hi - lo).max_element().max(f32::MIN_POSITIVE));
     let codes: Vec<u32> = mesh
         .triangles
         .iter()
@@ -870,6 +873,35 @@ mod tests {
             }
         }
         assert!(seen.iter().all(|&s| s == 1));
+    }
+
+    /// A flat mesh (a terrain) is cut into tiles across its extent, not into layers of its
+    /// small height: the pieces' footprints barely overlap (layers would each cover the
+    /// footprint of the layer above, and a ray leaving the surface would cross them all).
+    #[test]
+    fn a_flat_mesh_is_cut_into_tiles_not_layers() {
+        let m = grid_mesh(64);
+        let pieces = split_mesh(&m, 256);
+        assert!(pieces.len() >= 32, "{} pieces", pieces.len());
+        let footprint = |tris: &mut dyn Iterator<Item = u32>| {
+            let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+            for t in tris {
+                for v in m.triangles[t as usize] {
+                    lo = lo.min(m.positions[v as usize]);
+                    hi = hi.max(m.positions[v as usize]);
+                }
+            }
+            (hi.x - lo.x) * (hi.y - lo.y)
+        };
+        let whole = footprint(&mut (0..m.triangles.len() as u32));
+        let sum: f32 = pieces
+            .iter()
+            .map(|p| footprint(&mut p.iter().copied()))
+            .sum();
+        assert!(
+            sum < 1.3 * whole,
+            "pieces cover {sum} of a footprint of {whole}"
+        );
     }
 
     #[test]
