@@ -7,8 +7,8 @@
 //! plane tests all eight children) and leaves of one or two blocks of up to four triangles
 //! stored lane by lane ([`Tri4`], tested together; a leaf's two tests do not wait for each
 //! other, so a leaf of eight triangles costs little more than one of four, and saves the
-//! level of nodes that would split it). The boxes are computed from the triangles themselves, so
-//! they are exact and need no trust in the sender. The top-level tree over chunks is
+//! level of nodes that would split it). The boxes are computed from the triangles
+//! themselves, so they are exact and need no trust in the sender. The top-level tree over chunks is
 //! transcoded the same way, each of its leaves one chunk with that chunk's bounds, so a ray
 //! tests a chunk's box before touching it.
 //!
@@ -606,12 +606,13 @@ fn test_node(q: &RayQuery, n: &Node8, tmax: F32x8) -> (u32, F32x8) {
     (hit.bits() & 0xff, tnear)
 }
 
-/// Asks for the cache lines of `bytes` bytes at `p` (a hint: it never faults).
+/// Asks for the cache lines of `p` (a hint: it never faults).
 #[inline(always)]
-fn prefetch_lines<T>(p: &T, bytes: usize) {
+fn prefetch_lines<T: ?Sized>(p: &T) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let bytes = size_of_val(p);
         let p = (p as *const T).cast::<i8>();
         let mut at = 0;
         while at < bytes {
@@ -630,7 +631,7 @@ fn prefetch_child(nodes: &[Node8], c: u32, leaf_lines: &impl Fn(u32)) {
     if c & LEAF != 0 {
         leaf_lines(c & !LEAF);
     } else if let Some(n) = nodes.get(c as usize) {
-        prefetch_lines(n, size_of::<Node8>());
+        prefetch_lines(n);
     }
 }
 
@@ -1094,12 +1095,12 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
 }
 
 impl Bvh8 {
-    /// Asks for the lines of leaf block `leaf` (the walk's `leaf_lines` for a chunk's tree).
+    /// Asks for the lines of leaf `leaf`'s blocks (the walk's `leaf_lines` for a chunk's tree).
     #[inline(always)]
     fn prefetch_leaf(&self, leaf: u32) {
         let (at, blocks) = leaf_blocks(leaf);
-        if let Some(b) = self.leaves.get(at as usize) {
-            prefetch_lines(b, blocks * size_of::<Tri4>());
+        if let Some(b) = self.leaves.get(at as usize..at as usize + blocks) {
+            prefetch_lines(b);
         }
     }
 
