@@ -20,7 +20,12 @@ pub struct Routes {
     n: usize,
     next: Vec<NodeId>,
     alive: Vec<bool>,
-    children: Vec<Vec<Vec<NodeId>>>,
+    /// Broadcast children, flat: those of `at` for a broadcast from `root` are
+    /// `children[child_start[root * n + at]..child_start[root * n + at + 1]]`. Every process
+    /// of a cluster computes its routes at start, so they are built without an allocation
+    /// per (root, node) pair (86 x 86 of them on the paper's machine).
+    children: Vec<NodeId>,
+    child_start: Vec<u32>,
 }
 
 fn step_rank(t: &Topology, from: NodeId, to: NodeId) -> u8 {
@@ -36,13 +41,14 @@ impl Routes {
         let n = t.len();
         let mut next = vec![NONE; n * n];
         let mut dist = vec![u32::MAX; n];
+        let mut q = VecDeque::with_capacity(n);
         for dest in 0..n {
             if !alive[dest] {
                 continue;
             }
             dist.fill(u32::MAX);
             dist[dest] = 0;
-            let mut q = VecDeque::from([dest as NodeId]);
+            q.push_back(dest as NodeId);
             while let Some(x) = q.pop_front() {
                 for &y in t.neighbors(x) {
                     if alive[y as usize] && dist[y as usize] == u32::MAX {
@@ -66,12 +72,28 @@ impl Routes {
                 }
             }
         }
-        let mut children = vec![vec![Vec::new(); n]; n];
+        // Counted first, then filled in place: each (root, hop) list in increasing id order.
+        let mut child_start = vec![0u32; n * n + 1];
         for root in 0..n {
             for m in 0..n {
                 let hop = next[m * n + root];
                 if hop != NONE {
-                    children[root][hop as usize].push(m as NodeId);
+                    child_start[root * n + hop as usize + 1] += 1;
+                }
+            }
+        }
+        for i in 1..child_start.len() {
+            child_start[i] += child_start[i - 1];
+        }
+        let mut fill = child_start.clone();
+        let mut children = vec![NONE; child_start[n * n] as usize];
+        for root in 0..n {
+            for m in 0..n {
+                let hop = next[m * n + root];
+                if hop != NONE {
+                    let at = &mut fill[root * n + hop as usize];
+                    children[*at as usize] = m as NodeId;
+                    *at += 1;
                 }
             }
         }
@@ -80,6 +102,7 @@ impl Routes {
             next,
             alive: alive.to_vec(),
             children,
+            child_start,
         }
     }
 
@@ -99,14 +122,12 @@ impl Routes {
 
     /// Neighbours `at` passes a broadcast from `root` on to.
     pub fn broadcast_children(&self, at: NodeId, root: NodeId) -> &[NodeId] {
-        match self
-            .children
-            .get(root as usize)
-            .and_then(|c| c.get(at as usize))
-        {
-            Some(c) => c,
-            None => &[],
+        let (root, at) = (root as usize, at as usize);
+        if root >= self.n || at >= self.n {
+            return &[];
         }
+        let slot = root * self.n + at;
+        &self.children[self.child_start[slot] as usize..self.child_start[slot + 1] as usize]
     }
 
     /// Which nodes these routes treat as alive, by id.
