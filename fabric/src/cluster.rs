@@ -390,7 +390,7 @@ async fn register(
     };
     let assigned = Message::Assigned {
         node,
-        topology: fabric.topology().to_toml(),
+        topology: fabric.topology().to_wire(),
     };
     if writer
         .write(&Frame::new(0, node, &assigned, Box::new([])))

@@ -357,7 +357,7 @@ pub fn read_assignment(
         Ok(other) => return Err(ClusterError::UnexpectedAnswer(Box::new(other))),
         Err(e) => return Err(ClusterError::UndecodableAnswer(e)),
     };
-    let topology = Topology::from_toml(&topology).map_err(ClusterError::HostTopology)?;
+    let topology = Topology::from_wire(&topology).map_err(ClusterError::HostTopology)?;
     if node == 0 || node as usize >= topology.len() || topology.role(node) != role {
         return Err(ClusterError::WrongSlot { node, role });
     }
@@ -695,7 +695,7 @@ mod tests {
 
     #[test]
     fn an_assignment_is_checked_against_the_role() {
-        let tiny = Topology::preset("tiny").unwrap().to_toml();
+        let tiny = Topology::preset("tiny").unwrap().to_wire();
         let assigned = |node| {
             Ok(Message::Assigned {
                 node,
@@ -730,7 +730,7 @@ mod tests {
         assert!(matches!(e, ClusterError::UnexpectedAnswer(_)), "{e}");
         let bad = Ok(Message::Assigned {
             node: 1,
-            topology: "not toml [".into(),
+            topology: b"not a topology".to_vec(),
         });
         let e = read_assignment(bad, Role::Fork).unwrap_err();
         assert!(matches!(e, ClusterError::HostTopology(_)), "{e}");

@@ -66,6 +66,8 @@ pub struct Topology {
 pub enum TopologyError {
     #[error("topology file is not valid TOML: {0}")]
     Toml(#[source] toml::de::Error),
+    #[error("undecodable topology: {0}")]
+    Wire(String),
     #[error("cannot read the topology file {path}: {source}")]
     Read {
         path: std::path::PathBuf,
@@ -246,7 +248,26 @@ impl Topology {
 
     /// The topology as a TOML file (explicit nodes and links).
     pub fn to_toml(&self) -> String {
-        let file = File {
+        toml::to_string(&self.to_file()).expect("a topology always serialises")
+    }
+
+    /// The topology as the host sends it to each node that joins: the TOML file's fields in
+    /// bincode. Every one of a cluster's processes reads it at start, and parsing the
+    /// paper's 86-node topology as TOML took about 0.4 ms of CPU (writing it, on the host,
+    /// 0.1 ms a node).
+    pub fn to_wire(&self) -> Vec<u8> {
+        protocol::encode_value(&self.to_file())
+    }
+
+    /// A topology the host sent ([`Topology::to_wire`]), checked as a file is.
+    pub fn from_wire(bytes: &[u8]) -> Result<Topology, TopologyError> {
+        let file: File =
+            protocol::decode_value(bytes).map_err(|e| TopologyError::Wire(e.to_string()))?;
+        Topology::from_file(file)
+    }
+
+    fn to_file(&self) -> File {
+        File {
             name: Some(self.name.clone()),
             cluster_id: Some(self.cluster_id.clone()),
             grid: None,
@@ -273,8 +294,7 @@ impl Topology {
                 .map(|l| FileLink { between: *l })
                 .collect(),
             model: self.model.clone(),
-        };
-        toml::to_string(&file).expect("a topology always serialises")
+        }
     }
 
     fn validate(&mut self) -> Result<(), TopologyError> {
@@ -607,6 +627,25 @@ mod tests {
         assert_eq!(again.nodes, t.nodes);
         assert_eq!(again.links, t.links);
         assert_eq!(again.model, t.model);
+    }
+
+    #[test]
+    fn the_wire_form_reads_back_and_is_checked_as_a_file_is() {
+        for preset in ["tiny", "magg", "grid:2x3x2"] {
+            let t = Topology::preset(preset).unwrap();
+            assert_eq!(Topology::from_wire(&t.to_wire()).unwrap(), t, "{preset}");
+        }
+        // Well formed but not a cluster: refused by the same checks as a file.
+        let mut file = Topology::preset("tiny").unwrap().to_file();
+        file.node[1].role = "wizard".into();
+        let e = Topology::from_wire(&protocol::encode_value(&file)).unwrap_err();
+        assert!(e.to_string().contains("wizard"), "{e}");
+        let mut bytes = Topology::preset("tiny").unwrap().to_wire();
+        bytes.truncate(bytes.len() / 2);
+        assert!(matches!(
+            Topology::from_wire(&bytes),
+            Err(TopologyError::Wire(_))
+        ));
     }
 
     #[test]

@@ -152,10 +152,11 @@ pub enum Message {
         /// CPUs online on its machine.
         machine_cpus: u32,
     },
-    /// The node's slot: its id, the topology (TOML), and the peers' addresses come later.
+    /// The node's slot: its id, the topology (in bincode: `fabric::Topology::to_wire`), and
+    /// the peers' addresses come later.
     Assigned {
         node: NodeId,
-        topology: String,
+        topology: Vec<u8>,
     },
     /// Every node's advertised address and machine, once the topology is filled.
     Peers {
