@@ -252,9 +252,14 @@ pub async fn render_on_cluster(
         };
         return Err(RenderError::Load(e).into());
     }
+    // Encoded for the first fork node (and hashed for the checkpoint) in the same task, so
+    // that the encoding does not wait for the cluster to form.
     let reading = {
         let (scene, environment) = (rc.scene.clone(), rc.environment);
-        tokio::task::spawn_blocking(move || crate::scene_source::read_scene(&scene, environment))
+        tokio::task::spawn_blocking(move || {
+            crate::scene_source::read_scene(&scene, environment)
+                .map(|(desc, warnings)| (EncodedScene::new(desc), warnings))
+        })
     };
     let t = config.cluster.topology.clone();
     // Said once the scene is read, so that a scene that cannot be read is still one line
@@ -274,17 +279,17 @@ pub async fn render_on_cluster(
     };
     let starting = start(&config.cluster, &|_, _| {});
     tokio::pin!(starting, read);
-    let (mut cluster, desc) = tokio::select! {
+    let (mut cluster, scene) = tokio::select! {
         // A scene that cannot be read ends the start at once (nodes started by hand may be
         // long in joining); spawned nodes are killed with the half-formed cluster.
         read = &mut read => {
-            let (desc, _) = read?;
-            (starting.await?, desc)
+            let (scene, _) = read?;
+            (starting.await?, scene)
         }
         started = &mut starting => {
             let cluster = started?;
             match read.await {
-                Ok((desc, _)) => (cluster, desc),
+                Ok((scene, _)) => (cluster, scene),
                 Err(e) => {
                     cluster.shutdown("the scene could not be read").await;
                     return Err(e);
@@ -292,7 +297,7 @@ pub async fn render_on_cluster(
             }
         }
     };
-    let result = drive(config, &mut cluster, desc, cancel, t0).await;
+    let result = drive(config, &mut cluster, scene, cancel, t0).await;
     let clean = cluster
         .shutdown(if result.is_ok() {
             "render done"
@@ -440,7 +445,7 @@ enum Loss {
 async fn drive(
     config: &ClusterRenderConfig,
     cluster: &mut Cluster,
-    desc: renderer::SceneDesc,
+    scene: EncodedScene,
     cancel: &AtomicBool,
     t0: Instant,
 ) -> Result<ClusterStats, ClusterRenderError> {
@@ -451,7 +456,12 @@ async fn drive(
         lost: Vec::new(),
     };
     let chunk_triangles = rc.prepare.chunk_triangles as u32;
-    let (scene_sha256, encoded) = upload_scene(&f, &desc, chunk_triangles)?;
+    let EncodedScene {
+        desc,
+        encoded,
+        digest: scene_sha256,
+    } = scene;
+    upload_scene(&f, &encoded, chunk_triangles)?;
     // The denoiser's guides are traced here, from the host's own copy of the scene; without
     // them the copy goes now.
     let for_guides = rc.denoise.then_some(desc);
@@ -570,14 +580,32 @@ async fn drive(
 /// Sends the scene to the first fork node, in parts that fit a frame; returns the scene's
 /// digest for the checkpoint, taken from the same encoding, and the encoding, kept to
 /// rebuild a lost fork node's share from.
+/// The scene description, encoded as it travels to the first fork node, and the encoding's
+/// digest (the scene's hash in a checkpoint).
+struct EncodedScene {
+    desc: renderer::SceneDesc,
+    encoded: Vec<u8>,
+    digest: String,
+}
+
+impl EncodedScene {
+    fn new(desc: renderer::SceneDesc) -> EncodedScene {
+        let encoded = encode_value(&desc);
+        let digest = checkpoint::digest_of_encoded(&encoded);
+        EncodedScene {
+            desc,
+            encoded,
+            digest,
+        }
+    }
+}
+
 fn upload_scene(
     f: &fabric::Fabric,
-    desc: &renderer::SceneDesc,
+    bytes: &[u8],
     chunk_triangles: u32,
-) -> Result<(String, Vec<u8>), ClusterRenderError> {
+) -> Result<(), ClusterRenderError> {
     let master = f.topology().master_fork();
-    let bytes = encode_value(desc);
-    let digest = checkpoint::digest_of_encoded(&bytes);
     const PART: usize = 16 << 20;
     let parts = bytes.len().div_ceil(PART).max(1) as u32;
     for (i, part) in bytes.chunks(PART).enumerate() {
@@ -594,7 +622,7 @@ fn upload_scene(
                 source,
             })?;
     }
-    Ok((digest, bytes))
+    Ok(())
 }
 
 /// The prepared scene as the first fork node placed it.
