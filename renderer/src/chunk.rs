@@ -555,15 +555,23 @@ pub struct SurfaceAttributes {
 }
 
 /// A mesh primitive in world space, ready to be cut into chunks. Attribute arrays are either
-/// empty or as long as `positions`.
+/// empty or as long as `positions`. In serde each array is one byte string (`pod_vec` in
+/// `scene.rs`).
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MeshData {
+    #[serde(with = "crate::scene::pod_vec")]
     pub positions: Vec<Vec3>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub normals: Vec<Vec3>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub uv0: Vec<Vec2>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub uv1: Vec<Vec2>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub tangents: Vec<Vec4>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub colors: Vec<Vec4>,
+    #[serde(with = "crate::scene::pod_vec")]
     pub triangles: Vec<[u32; 3]>,
     pub material: u32,
 }
