@@ -577,11 +577,9 @@ async fn drive(
     Ok(stats)
 }
 
-/// Sends the scene to the first fork node, in parts that fit a frame; returns the scene's
-/// digest for the checkpoint, taken from the same encoding, and the encoding, kept to
-/// rebuild a lost fork node's share from.
-/// The scene description, encoded as it travels to the first fork node, and the encoding's
-/// digest (the scene's hash in a checkpoint).
+/// The scene description, encoded as it travels to the first fork node (and kept to rebuild
+/// a lost fork node's share from), and the encoding's digest (the scene's hash in a
+/// checkpoint).
 struct EncodedScene {
     desc: renderer::SceneDesc,
     encoded: Vec<u8>,
@@ -600,6 +598,7 @@ impl EncodedScene {
     }
 }
 
+/// Sends the encoded scene to the first fork node, in parts that fit a frame.
 fn upload_scene(
     f: &fabric::Fabric,
     bytes: &[u8],
