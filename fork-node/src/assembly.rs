@@ -221,11 +221,13 @@ impl ForkNode {
         );
         let mut count = 0u32;
         for (i, c) in owned(&data.chunks, &placement.chunk_owner, me) {
-            self.store(DataId::Chunk(i as u32), c.words().into());
+            // The walking form the preparation built, kept for the segment.
+            let walk = c.accel().to_words();
+            self.store(DataId::Chunk(i as u32), c.words().into(), Some(walk));
             count += 1;
         }
         for (i, t) in owned(&data.tiles, &placement.tile_owner, me) {
-            self.store(DataId::Tile(i as u32), t.texels[..].into());
+            self.store(DataId::Tile(i as u32), t.texels[..].into(), None);
             count += 1;
         }
         self.memory.lock().expect("memory lock").expected = Some(count);

@@ -17,6 +17,13 @@ pub(crate) struct SharedMemory {
     pub chunk_owner: Vec<NodeId>,
     pub tile_owner: Vec<NodeId>,
     pub data: HashMap<DataId, Arc<[u32]>>,
+    /// Walking forms of the chunks held, made when each was checked on arrival (or kept from
+    /// the preparation), for the segment ([`ForkNode::publish_segment`]), which takes them:
+    /// a chunk is transcoded once on its card, not once to check it and again to publish it.
+    pub walks: HashMap<DataId, Vec<u32>>,
+    /// Set once the segment took the walking forms: items held later (a lost card's share,
+    /// rebuilt here) keep none, as no segment will take them.
+    pub walks_taken: bool,
     /// Items announced as held, and whether all have arrived.
     pub expected: Option<u32>,
     pub received: u32,
@@ -42,8 +49,12 @@ impl SharedMemory {
         chunks.chain(tiles).collect()
     }
 
-    /// Keeps an item; an item sent twice counts once.
-    pub fn store(&mut self, id: DataId, words: Arc<[u32]>) {
+    /// Keeps an item, and a chunk's walking form when it has one; an item sent twice counts
+    /// once.
+    pub fn store(&mut self, id: DataId, words: Arc<[u32]>, walk: Option<Vec<u32>>) {
+        if let Some(walk) = walk.filter(|_| !self.walks_taken) {
+            self.walks.insert(id, walk);
+        }
         if self.data.insert(id, words).is_none() {
             self.received += 1;
         }
@@ -75,12 +86,27 @@ pub(crate) fn decode_header(
     Ok(scene)
 }
 
-/// Whether `words` can be item `id`: render nodes trust what this memory hands them.
-pub(crate) fn valid_item(id: DataId, words: &[u32]) -> bool {
+/// What a received item checked out as.
+#[derive(Debug, PartialEq)]
+pub(crate) enum Checked {
+    Tile,
+    /// A chunk, with the walking form its check transcoded.
+    Chunk {
+        walk: Vec<u32>,
+    },
+}
+
+/// Whether `words` can be item `id` (render nodes trust what this memory hands them), and
+/// for a chunk the walking form the check made; `None` if it cannot.
+pub(crate) fn check_item(id: DataId, words: &[u32]) -> Option<Checked> {
     match id {
-        DataId::Chunk(_) => renderer::chunk::Chunk::from_words(words.into()).is_ok(),
-        DataId::Tile(_) => words.len() == renderer::texture::TILE_TEXELS,
-        DataId::Synthetic { .. } => false,
+        DataId::Chunk(_) => renderer::chunk::Chunk::from_words(words.into())
+            .ok()
+            .map(|c| Checked::Chunk {
+                walk: c.accel().to_words(),
+            }),
+        DataId::Tile(_) => (words.len() == renderer::texture::TILE_TEXELS).then_some(Checked::Tile),
+        DataId::Synthetic { .. } => None,
     }
 }
 
@@ -109,19 +135,26 @@ impl ForkNode {
     }
 
     pub(crate) fn on_hold(self: &Arc<ForkNode>, id: DataId, words: Box<[u32]>) {
-        if !valid_item(id, &words) {
-            tracing::error!(
-                "fork node {}: received {id:?} is not valid data; ignored",
-                self.fabric.me()
-            );
-            return;
-        }
-        self.store(id, words.into());
+        let walk = match check_item(id, &words) {
+            Some(Checked::Chunk { walk }) => Some(walk),
+            Some(Checked::Tile) => None,
+            None => {
+                tracing::error!(
+                    "fork node {}: received {id:?} is not valid data; ignored",
+                    self.fabric.me()
+                );
+                return;
+            }
+        };
+        self.store(id, words.into(), walk);
         self.maybe_ready();
     }
 
-    pub(crate) fn store(&self, id: DataId, words: Arc<[u32]>) {
-        self.memory.lock().expect("memory lock").store(id, words);
+    pub(crate) fn store(&self, id: DataId, words: Arc<[u32]>, walk: Option<Vec<u32>>) {
+        self.memory
+            .lock()
+            .expect("memory lock")
+            .store(id, words, walk);
     }
 }
 
@@ -141,10 +174,10 @@ mod tests {
     #[test]
     fn complete_once_the_header_and_every_announced_item_are_here() {
         let mut m = SharedMemory::default();
-        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]), None);
         m.expected = Some(2);
         assert!(!m.complete(), "one of two, and no header");
-        m.store(DataId::Tile(3), Arc::from(vec![2u32]));
+        m.store(DataId::Tile(3), Arc::from(vec![2u32]), None);
         assert!(!m.complete(), "no header");
         m.scene = Some(Arc::new(demo()));
         assert!(m.complete());
@@ -153,9 +186,17 @@ mod tests {
     #[test]
     fn an_item_stored_twice_counts_once() {
         let mut m = SharedMemory::default();
-        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
-        m.store(DataId::Chunk(0), Arc::from(vec![1u32]));
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]), None);
+        m.store(DataId::Chunk(0), Arc::from(vec![1u32]), Some(vec![7]));
         assert_eq!(m.received, 1);
+        assert_eq!(m.walks[&DataId::Chunk(0)], [7]);
+        m.walks_taken = true;
+        m.walks.clear();
+        m.store(DataId::Chunk(1), Arc::from(vec![1u32]), Some(vec![8]));
+        assert!(
+            m.walks.is_empty(),
+            "no walking form kept once the segment took them"
+        );
     }
 
     #[test]
@@ -191,9 +232,30 @@ mod tests {
     #[test]
     fn only_whole_tiles_and_well_formed_chunks_are_held() {
         let tile = vec![0u32; renderer::texture::TILE_TEXELS];
-        assert!(valid_item(DataId::Tile(0), &tile));
-        assert!(!valid_item(DataId::Tile(0), &tile[1..]));
-        assert!(!valid_item(DataId::Chunk(0), &[1, 2, 3]));
-        assert!(!valid_item(DataId::Synthetic { bytes: 4 }, &[0]));
+        assert_eq!(check_item(DataId::Tile(0), &tile), Some(Checked::Tile));
+        assert_eq!(check_item(DataId::Tile(0), &tile[1..]), None);
+        assert_eq!(check_item(DataId::Chunk(0), &[1, 2, 3]), None);
+        assert_eq!(check_item(DataId::Synthetic { bytes: 4 }, &[0]), None);
+    }
+
+    #[test]
+    fn a_chunk_checked_on_arrival_brings_the_walking_form_its_card_publishes() {
+        let opts = renderer::PrepareOptions {
+            chunk_triangles: 64,
+        };
+        let (_, data) = renderer::prepare(renderer::demo::demo_scene(), &opts);
+        assert!(data.chunks.len() > 1);
+        for (i, c) in data.chunks.iter().enumerate() {
+            // What the first fork node keeps from its preparation, what another card's
+            // check makes, and what a transcoding of the words at publishing made before.
+            let kept = c.accel().to_words();
+            let checked = check_item(DataId::Chunk(i as u32), c.words()).unwrap();
+            let again = renderer::chunk::Chunk::from_words(c.words().into())
+                .unwrap()
+                .accel()
+                .to_words();
+            assert_eq!(checked, Checked::Chunk { walk: kept.clone() }, "chunk {i}");
+            assert_eq!(kept, again, "chunk {i}");
+        }
     }
 }

@@ -31,6 +31,12 @@ impl ForkNode {
     /// is announced and every render node stays on TCP.
     pub(crate) fn publish_segment(&self, card: &[NodeId]) {
         let f = &self.fabric;
+        // Taken whether or not a segment is written, so that none stays held for nothing.
+        let mut kept = {
+            let mut m = self.memory.lock().expect("memory lock");
+            m.walks_taken = true;
+            std::mem::take(&mut m.walks)
+        };
         let dir = Path::new(shm::SHM_DIR);
         if !dir.is_dir() {
             tracing::info!(
@@ -57,16 +63,21 @@ impl ForkNode {
             });
             items
         };
+        // Each chunk's walking form as its check on arrival made it (or the preparation, on
+        // the first fork node); transcoded here only for a chunk held without one.
         let walks: Vec<(DataId, Vec<u32>)> = items
             .iter()
             .filter(|(id, _)| matches!(id, DataId::Chunk(_)))
-            .filter_map(|(id, w)| match Chunk::from_words(w[..].into()) {
-                Ok(chunk) => Some((*id, chunk.accel().to_words())),
-                Err(e) => {
-                    // Render nodes refuse it as well, whichever way it reaches them.
-                    tracing::warn!("fork node {}: {id:?} is not a valid chunk: {e}", f.me());
-                    None
-                }
+            .filter_map(|(id, w)| match kept.remove(id) {
+                Some(walk) => Some((*id, walk)),
+                None => match Chunk::from_words(w[..].into()) {
+                    Ok(chunk) => Some((*id, chunk.accel().to_words())),
+                    Err(e) => {
+                        // Render nodes refuse it as well, whichever way it reaches them.
+                        tracing::warn!("fork node {}: {id:?} is not a valid chunk: {e}", f.me());
+                        None
+                    }
+                },
             })
             .collect();
         let refs: Vec<Item> = items
