@@ -96,16 +96,19 @@ pub(crate) enum Checked {
     },
 }
 
-/// Whether `words` can be item `id` (render nodes trust what this memory hands them), and
-/// for a chunk the walking form the check made; `None` if it cannot.
-pub(crate) fn check_item(id: DataId, words: &[u32]) -> Option<Checked> {
+/// Whether `words` can be item `id` (render nodes trust what this memory hands them): the
+/// words as this memory keeps them, and for a chunk the walking form the check made; `None`
+/// if they cannot. A chunk is checked in the words as received and copied once, into what
+/// is kept.
+pub(crate) fn check_item(id: DataId, words: Box<[u32]>) -> Option<(Arc<[u32]>, Checked)> {
     match id {
-        DataId::Chunk(_) => renderer::chunk::Chunk::from_words(words.into())
-            .ok()
-            .map(|c| Checked::Chunk {
-                walk: c.accel().to_words(),
-            }),
-        DataId::Tile(_) => (words.len() == renderer::texture::TILE_TEXELS).then_some(Checked::Tile),
+        DataId::Chunk(_) => renderer::chunk::Chunk::from_words(words).ok().map(|c| {
+            let walk = c.accel().to_words();
+            (c.words().into(), Checked::Chunk { walk })
+        }),
+        DataId::Tile(_) => {
+            (words.len() == renderer::texture::TILE_TEXELS).then(|| (words.into(), Checked::Tile))
+        }
         DataId::Synthetic { .. } => None,
     }
 }
@@ -135,9 +138,9 @@ impl ForkNode {
     }
 
     pub(crate) fn on_hold(self: &Arc<ForkNode>, id: DataId, words: Box<[u32]>) {
-        let walk = match check_item(id, &words) {
-            Some(Checked::Chunk { walk }) => Some(walk),
-            Some(Checked::Tile) => None,
+        let (words, walk) = match check_item(id, words) {
+            Some((words, Checked::Chunk { walk })) => (words, Some(walk)),
+            Some((words, Checked::Tile)) => (words, None),
             None => {
                 tracing::error!(
                     "fork node {}: received {id:?} is not valid data; ignored",
@@ -146,7 +149,7 @@ impl ForkNode {
                 return;
             }
         };
-        self.store(id, words.into(), walk);
+        self.store(id, words, walk);
         self.maybe_ready();
     }
 
@@ -231,11 +234,12 @@ mod tests {
 
     #[test]
     fn only_whole_tiles_and_well_formed_chunks_are_held() {
+        let check = |id, words: &[u32]| check_item(id, words.into()).map(|(_, c)| c);
         let tile = vec![0u32; renderer::texture::TILE_TEXELS];
-        assert_eq!(check_item(DataId::Tile(0), &tile), Some(Checked::Tile));
-        assert_eq!(check_item(DataId::Tile(0), &tile[1..]), None);
-        assert_eq!(check_item(DataId::Chunk(0), &[1, 2, 3]), None);
-        assert_eq!(check_item(DataId::Synthetic { bytes: 4 }, &[0]), None);
+        assert_eq!(check(DataId::Tile(0), &tile), Some(Checked::Tile));
+        assert_eq!(check(DataId::Tile(0), &tile[1..]), None);
+        assert_eq!(check(DataId::Chunk(0), &[1, 2, 3]), None);
+        assert_eq!(check(DataId::Synthetic { bytes: 4 }, &[0]), None);
     }
 
     #[test]
@@ -249,7 +253,8 @@ mod tests {
             // What the first fork node keeps from its preparation, what another card's
             // check makes, and what a transcoding of the words at publishing made before.
             let kept = c.accel().to_words();
-            let checked = check_item(DataId::Chunk(i as u32), c.words()).unwrap();
+            let (words, checked) = check_item(DataId::Chunk(i as u32), c.words().into()).unwrap();
+            assert_eq!(&words[..], c.words(), "chunk {i}");
             let again = renderer::chunk::Chunk::from_words(c.words().into())
                 .unwrap()
                 .accel()
