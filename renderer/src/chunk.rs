@@ -780,7 +780,10 @@ pub(crate) fn chunk_words_from(
         bounds_max: Vec3::from(bounds.max).into(),
     };
 
-    let mut words: Vec<u32> = Vec::new();
+    let layout = Layout::of(&header)?;
+    // One allocation of the chunk's final size: grown as it was written, it was copied
+    // again at each doubling.
+    let mut words: Vec<u32> = Vec::with_capacity(layout.end);
     words.extend_from_slice(bytemuck::cast_slice(&[header]));
     words.extend_from_slice(bytemuck::cast_slice(&wide.nodes));
     for &t in ordered {
@@ -789,27 +792,29 @@ pub(crate) fn chunk_words_from(
         words.extend_from_slice(bytemuck::cast_slice(&p));
     }
     words.extend_from_slice(bytemuck::cast_slice(&tri_vertices));
-    let gather = |words: &mut Vec<u32>, f: &dyn Fn(usize) -> Vec<f32>| {
-        for &v in &local_vertices {
-            words.extend(f(v as usize).iter().map(|x| x.to_bits()));
+    // Each chunk-local vertex's attribute, in local order (no allocation per vertex).
+    fn gather<T: bytemuck::Pod>(words: &mut Vec<u32>, local: &[u32], values: &[T]) {
+        for &v in local {
+            words.extend_from_slice(bytemuck::cast_slice(std::slice::from_ref(
+                &values[v as usize],
+            )));
         }
-    };
+    }
     if flags & FLAG_NORMALS != 0 {
-        gather(&mut words, &|v| mesh.normals[v].to_array().to_vec());
+        gather(&mut words, &local_vertices, &mesh.normals);
     }
     if flags & FLAG_UV0 != 0 {
-        gather(&mut words, &|v| mesh.uv0[v].to_array().to_vec());
+        gather(&mut words, &local_vertices, &mesh.uv0);
     }
     if flags & FLAG_UV1 != 0 {
-        gather(&mut words, &|v| mesh.uv1[v].to_array().to_vec());
+        gather(&mut words, &local_vertices, &mesh.uv1);
     }
     if flags & FLAG_TANGENTS != 0 {
-        gather(&mut words, &|v| mesh.tangents[v].to_array().to_vec());
+        gather(&mut words, &local_vertices, &mesh.tangents);
     }
     if flags & FLAG_COLORS != 0 {
-        gather(&mut words, &|v| mesh.colors[v].to_array().to_vec());
+        gather(&mut words, &local_vertices, &mesh.colors);
     }
-    let layout = Layout::of(&header)?;
     debug_assert_eq!(layout.end, words.len());
     let chunk = Chunk {
         words: words.into(),
