@@ -1132,16 +1132,22 @@ fn read_primitive(
     };
 
     // Compact to the vertices used (several meshes may share one large accessor).
-    let mut remap: HashMap<u32, u32> = HashMap::new();
+    // A table over the accessor's vertices (indices were checked against its length above),
+    // holding each used vertex's new index plus one: zeroed memory the allocator maps
+    // lazily, so a primitive that uses a few vertices of a large shared accessor touches a
+    // few pages of it. A hash map here was a third of reading a million-triangle mesh.
+    let mut remap = vec![0u32; positions.len()];
     let mut used: Vec<u32> = Vec::new();
     let triangles: Vec<[u32; 3]> = triangles
         .iter()
         .map(|t| {
             t.map(|v| {
-                *remap.entry(v).or_insert_with(|| {
+                let slot = &mut remap[v as usize];
+                if *slot == 0 {
                     used.push(v);
-                    (used.len() - 1) as u32
-                })
+                    *slot = used.len() as u32;
+                }
+                *slot - 1
             })
         })
         .collect();
