@@ -1362,6 +1362,68 @@ mod tests {
         assert!(decode_data_uri("data:application/octet-stream;base64,!!!").is_none());
     }
 
+    /// Two primitives indexing one shared position accessor: each keeps exactly the vertices
+    /// its triangles use, numbered in order of first use, and its triangles name the same
+    /// points as in the file.
+    #[test]
+    fn primitives_sharing_an_accessor_keep_only_their_vertices() {
+        use base64::Engine;
+        let points: [[f32; 3]; 6] = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [2.0, 0.0, 1.0],
+            [0.0, 2.0, 1.0],
+            [3.0, 3.0, 2.0],
+        ];
+        let (first, second): ([u32; 6], [u32; 3]) = ([4, 2, 5, 5, 2, 1], [1, 4, 0]);
+        let mut bin: Vec<u8> = points
+            .iter()
+            .flatten()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        bin.extend(first.iter().chain(&second).flat_map(|i| i.to_le_bytes()));
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&bin)
+        );
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}},
+                                      {{"attributes":{{"POSITION":0}},"indices":2}}]}}],
+            "buffers":[{{"byteLength":{len},"uri":"{uri}"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":72}},
+                           {{"buffer":0,"byteOffset":72,"byteLength":24}},
+                           {{"buffer":0,"byteOffset":96,"byteLength":12}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":6,"type":"VEC3",
+                           "min":[0,0,0],"max":[3,3,2]}},
+                         {{"bufferView":1,"componentType":5125,"count":6,"type":"SCALAR"}},
+                         {{"bufferView":2,"componentType":5125,"count":3,"type":"SCALAR"}}]}}"#,
+            len = bin.len()
+        );
+        let loaded = load_gltf_bytes(Path::new("shared.gltf"), json.as_bytes()).unwrap();
+        let meshes = &loaded.desc.meshes;
+        assert_eq!(meshes.len(), 2);
+        let shift = loaded.origin_shift;
+        for (mesh, indices, used) in [
+            (&meshes[0], &first[..], &[4u32, 2, 5, 1][..]),
+            (&meshes[1], &second[..], &[1u32, 4, 0][..]),
+        ] {
+            assert_eq!(mesh.positions.len(), used.len());
+            let expected: Vec<[u32; 3]> = indices
+                .chunks_exact(3)
+                .map(|t| {
+                    [t[0], t[1], t[2]].map(|v| used.iter().position(|&u| u == v).unwrap() as u32)
+                })
+                .collect();
+            assert_eq!(mesh.triangles, expected);
+            for (p, &v) in mesh.positions.iter().zip(used) {
+                let file = glam::DVec3::from(points[v as usize].map(f64::from)) - shift;
+                assert!((p.as_dvec3() - file).length() < 1e-6, "{p} against {file}");
+            }
+        }
+    }
+
     #[test]
     fn garbage_is_a_parse_error_not_a_panic() {
         let p = Path::new("garbage.gltf");
