@@ -175,6 +175,38 @@ enum Choice {
     Fewer,
 }
 
+/// The least cost of two children sharing at most `j + 1` slots, for each `j`, with the fewest
+/// slots for the left child that gives it (the left in `k` slots, the right in `j + 1 - k`;
+/// `(inf, 0)` where none is finite). `left` and `right` are the children's costs in 1 to 8
+/// slots, each never rising with more slots; `left_is_leaf` says the left child's are all one
+/// value.
+#[inline(always)]
+fn distribute(left: &[f64; 8], right: &[f64; 8], left_is_leaf: bool) -> [(f64, u8); 8] {
+    std::array::from_fn(|j| {
+        let mut best = (f64::INFINITY, 0u8);
+        // A leaf's costs are the same in any number of slots, and the right child's fall or
+        // stay as it gets more: the left in one slot is the least (rounding is monotonic)
+        // and the first, which the loop below would keep. Half the loop's work.
+        if left_is_leaf {
+            let cost = if j > 0 {
+                left[0] + right[j - 1]
+            } else {
+                f64::INFINITY
+            };
+            return if cost < best.0 { (cost, 1) } else { best };
+        }
+        // The best so far in a local, kept in registers: written through an array, each of
+        // the 28 steps waited for the store of the one before (a sixth of the whole build).
+        for k in 1..=j {
+            let cost = left[k - 1] + right[j - k];
+            if cost < best.0 {
+                best = (cost, k as u8);
+            }
+        }
+        best
+    })
+}
+
 /// Collapses binary trees into wide trees, reusing its buffers.
 #[derive(Default)]
 struct Collapser {
@@ -229,20 +261,7 @@ impl Collapser {
             }
             let (l, r) = (n[i].first_index as usize, n[i].first_index as usize + 1);
             self.prims[i] = self.prims[l] + self.prims[r];
-            let (cl, cr) = (self.cost[l], self.cost[r]);
-            // distribute[j]: the children in at most j + 1 slots. The best so far is a
-            // local, kept in registers: written through the array, each of the 28 steps
-            // waited for the store of the one before (a sixth of the whole build's time).
-            let distribute: [(f64, u8); 8] = std::array::from_fn(|j| {
-                let mut best = (f64::INFINITY, 0u8);
-                for k in 1..=j {
-                    let cost = cl[k - 1] + cr[j - k];
-                    if cost < best.0 {
-                        best = (cost, k as u8);
-                    }
-                }
-                best
-            });
+            let distribute = distribute(&self.cost[l], &self.cost[r], n[l].prim_count != 0);
             let as_node = area * NODE_COST + distribute[7].0;
             self.node_split[i] = distribute[7].1;
             let as_leaf = if self.prims[i] <= max_leaf {
@@ -426,6 +445,54 @@ mod tests {
                 Aabb::new(Vec3A::new(x, y, z), Vec3A::new(x + 0.5, y + 0.5, z + 0.5))
             })
             .collect()
+    }
+
+    /// A row of costs in 1 to 8 slots as the plan makes them: never rising with more slots,
+    /// with repeats (a subtree that gains nothing from another slot) and, for a leaf, one
+    /// value throughout.
+    fn cost_row() -> impl proptest::strategy::Strategy<Value = [f64; 8]> {
+        use proptest::prelude::*;
+        (prop::array::uniform8(0u8..4), 1.0f64..1e6, any::<bool>()).prop_map(
+            |(drops, start, constant)| {
+                let mut row = [start; 8];
+                for j in 1..8 {
+                    let step = if constant {
+                        0.0
+                    } else {
+                        f64::from(drops[j]) * 0.125
+                    };
+                    row[j] = row[j - 1] * (1.0 - step * 0.5);
+                }
+                row
+            },
+        )
+    }
+
+    proptest::proptest! {
+        /// The shortcut for a left leaf gives what the plain loop over every split gives,
+        /// costs and the left child's slots alike (the trees come out the same).
+        #[test]
+        fn distributing_slots_matches_trying_every_split(
+            left in cost_row(),
+            right in cost_row(),
+            leaf_cost in 1.0f64..1e6,
+        ) {
+            let plain = |left: &[f64; 8]| -> [(f64, u8); 8] {
+                std::array::from_fn(|j| {
+                    let mut best = (f64::INFINITY, 0u8);
+                    for k in 1..=j {
+                        let cost = left[k - 1] + right[j - k];
+                        if cost < best.0 {
+                            best = (cost, k as u8);
+                        }
+                    }
+                    best
+                })
+            };
+            let leaf = [leaf_cost; 8];
+            proptest::prop_assert_eq!(distribute(&leaf, &right, true), plain(&leaf));
+            proptest::prop_assert_eq!(distribute(&left, &right, false), plain(&left));
+        }
     }
 
     /// Boxes far apart enough that their areas overflow f32 (a mesh spanning 1e30 units)
