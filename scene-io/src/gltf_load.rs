@@ -969,6 +969,76 @@ struct PlacedPrimitive {
     material: u32,
 }
 
+/// The bytes of a plain accessor whose elements lie packed one after another (no byte
+/// stride other than the element's, no sparse substitution), `elem` bytes each; `None` for
+/// any other accessor, which the gltf crate's reader then reads element by element.
+fn packed_bytes<'b>(acc: &gltf::Accessor, buffers: &'b [Vec<u8>], elem: usize) -> Option<&'b [u8]> {
+    if acc.sparse().is_some() || acc.size() != elem {
+        return None;
+    }
+    let view = acc.view()?;
+    if view.stride().is_some_and(|s| s != elem) {
+        return None;
+    }
+    let len = acc.count().checked_mul(elem)?;
+    if acc.offset().checked_add(len)? > view.length() {
+        return None;
+    }
+    let start = view.offset().checked_add(acc.offset())?;
+    buffers
+        .get(view.buffer().index())?
+        .get(start..start.checked_add(len)?)
+}
+
+/// A packed accessor of `N` floats an element, read in one pass over its bytes: the reader's
+/// iterator, which checks and converts each element on its own, was most of the time taken
+/// to read a large mesh. `None` where the accessor is not that (another type, strided,
+/// sparse): the caller reads it with the reader.
+fn packed_floats<const N: usize>(
+    acc: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+) -> Option<Vec<[f32; N]>> {
+    if acc.data_type() != DataType::F32 || acc.dimensions().multiplicity() != N {
+        return None;
+    }
+    let bytes = packed_bytes(acc, buffers, 4 * N)?;
+    Some(
+        bytes
+            .chunks_exact(4 * N)
+            .map(|e| {
+                std::array::from_fn(|i| {
+                    f32::from_le_bytes([e[4 * i], e[4 * i + 1], e[4 * i + 2], e[4 * i + 3]])
+                })
+            })
+            .collect(),
+    )
+}
+
+/// A packed accessor of unsigned integer indices, as [`packed_floats`] reads floats.
+fn packed_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<u32>> {
+    if acc.dimensions() != Dimensions::Scalar {
+        return None;
+    }
+    let width = match acc.data_type() {
+        DataType::U8 => 1,
+        DataType::U16 => 2,
+        DataType::U32 => 4,
+        _ => return None,
+    };
+    let bytes = packed_bytes(acc, buffers, width)?;
+    Some(match width {
+        1 => bytes.iter().map(|&b| u32::from(b)).collect(),
+        2 => bytes
+            .chunks_exact(2)
+            .map(|e| u32::from(u16::from_le_bytes([e[0], e[1]])))
+            .collect(),
+        _ => bytes
+            .chunks_exact(4)
+            .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]))
+            .collect(),
+    })
+}
+
 fn read_primitive(
     ctx: &mut Ctx,
     prim: &gltf::Primitive,
@@ -1055,14 +1125,20 @@ fn read_primitive(
     }
 
     let reader = prim.reader(|b| buffers.get(b.index()).map(|v| v.as_slice()));
-    let positions: Vec<DVec3> = reader
-        .read_positions()
-        .ok_or_else(|| ctx.invalid(format!("{mesh_name}: POSITION data unreadable")))?
-        .map(|p| Vec3::from(p).as_dvec3())
-        .collect();
-    let indices: Vec<u32> = match reader.read_indices() {
-        Some(i) => i.into_u32().collect(),
-        None => (0..positions.len() as u32).collect(),
+    let positions: Vec<DVec3> = match packed_floats::<3>(&pos_acc, buffers) {
+        Some(p) => p.into_iter().map(|p| Vec3::from(p).as_dvec3()).collect(),
+        None => reader
+            .read_positions()
+            .ok_or_else(|| ctx.invalid(format!("{mesh_name}: POSITION data unreadable")))?
+            .map(|p| Vec3::from(p).as_dvec3())
+            .collect(),
+    };
+    let indices: Vec<u32> = match prim.indices().and_then(|a| packed_indices(&a, buffers)) {
+        Some(i) => i,
+        None => match reader.read_indices() {
+            Some(i) => i.into_u32().collect(),
+            None => (0..positions.len() as u32).collect(),
+        },
     };
     if let Some(&bad) = indices.iter().find(|&&i| i as usize >= positions.len()) {
         return Err(ctx.invalid(format!(
@@ -1090,45 +1166,58 @@ fn read_primitive(
         _ => Vec::new(),
     };
 
-    let normals: Vec<Vec3> = if has_normals {
+    // Each attribute straight from its bytes where it is packed floats, else by the reader.
+    let packed = |semantic: gltf::Semantic| prim.get(&semantic);
+    let normals: Vec<Vec3> = if !has_normals {
+        Vec::new()
+    } else if let Some(n) = packed(gltf::Semantic::Normals).and_then(|a| packed_floats(&a, buffers))
+    {
+        n.into_iter().map(Vec3::from).collect()
+    } else {
         reader
             .read_normals()
             .map(|it| it.map(Vec3::from).collect())
             .unwrap_or_default()
-    } else {
-        Vec::new()
     };
-    let tangents: Vec<Vec4> = if has_tangents {
+    let tangents: Vec<Vec4> = if !has_tangents {
+        Vec::new()
+    } else if let Some(t) =
+        packed(gltf::Semantic::Tangents).and_then(|a| packed_floats(&a, buffers))
+    {
+        t.into_iter().map(Vec4::from).collect()
+    } else {
         reader
             .read_tangents()
             .map(|it| it.map(Vec4::from).collect())
             .unwrap_or_default()
-    } else {
-        Vec::new()
     };
-    let uv0: Vec<Vec2> = if has_uv0 {
-        reader
-            .read_tex_coords(0)
-            .map(|it| it.into_f32().map(Vec2::from).collect())
-            .unwrap_or_default()
-    } else {
-        Vec::new()
+    let uv = |set: u32, has: bool| -> Vec<Vec2> {
+        if !has {
+            Vec::new()
+        } else if let Some(t) =
+            packed(gltf::Semantic::TexCoords(set)).and_then(|a| packed_floats(&a, buffers))
+        {
+            t.into_iter().map(Vec2::from).collect()
+        } else {
+            reader
+                .read_tex_coords(set)
+                .map(|it| it.into_f32().map(Vec2::from).collect())
+                .unwrap_or_default()
+        }
     };
-    let uv1: Vec<Vec2> = if has_uv1 {
-        reader
-            .read_tex_coords(1)
-            .map(|it| it.into_f32().map(Vec2::from).collect())
-            .unwrap_or_default()
-    } else {
+    let (uv0, uv1) = (uv(0, has_uv0), uv(1, has_uv1));
+    // Colors of three components get an alpha of one from the reader: only four are packed.
+    let colors: Vec<Vec4> = if !has_colors {
         Vec::new()
-    };
-    let colors: Vec<Vec4> = if has_colors {
+    } else if let Some(c) =
+        packed(gltf::Semantic::Colors(0)).and_then(|a| packed_floats(&a, buffers))
+    {
+        c.into_iter().map(Vec4::from).collect()
+    } else {
         reader
             .read_colors(0)
             .map(|it| it.into_rgba_f32().map(Vec4::from).collect())
             .unwrap_or_default()
-    } else {
-        Vec::new()
     };
 
     // Compact to the vertices used (several meshes may share one large accessor).
@@ -1422,6 +1511,96 @@ mod tests {
                 assert!((p.as_dvec3() - file).length() < 1e-6, "{p} against {file}");
             }
         }
+    }
+
+    /// Accessors read straight from their bytes give what the gltf crate's reader gives, for
+    /// packed floats and indices of each width; a strided or sparse accessor is left to the
+    /// reader.
+    #[test]
+    fn packed_accessors_read_as_the_reader_reads_them() {
+        use base64::Engine;
+        let points: [[f32; 3]; 4] = [
+            [0.5, -1.0, 2.0],
+            [3.0, 0.0, -0.25],
+            [1e-3, 7.0, 1.0],
+            [-2.0, 4.5, 0.0],
+        ];
+        let mut bin: Vec<u8> = points
+            .iter()
+            .flatten()
+            .flat_map(|v| v.to_le_bytes())
+            .collect(); // 0..48
+        for p in &points {
+            // 48..144: each point beside a normal, 24 bytes a vertex.
+            bin.extend(
+                p.iter()
+                    .chain(&[0.0, 0.0, 1.0])
+                    .flat_map(|v| v.to_le_bytes()),
+            );
+        }
+        let order = [3u32, 1, 0, 2, 1, 3];
+        bin.extend(order.iter().flat_map(|&i| (i as u16).to_le_bytes())); // 144..156
+        bin.extend(order.iter().map(|&i| i as u8)); // 156..162
+        bin.extend([0, 0]);
+        bin.extend(order.iter().flat_map(|&i| i.to_le_bytes())); // 164..188
+        bin.push(2); // 188: the sparse accessor's one index
+        bin.extend([0, 0, 0]);
+        bin.extend([9.0f32, 9.0, 9.0].iter().flat_map(|v| v.to_le_bytes())); // 192..204
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&bin)
+        );
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":3}},
+                                      {{"attributes":{{"POSITION":1}},"indices":4}},
+                                      {{"attributes":{{"POSITION":2}},"indices":5}}]}}],
+            "buffers":[{{"byteLength":{len},"uri":"{uri}"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":48}},
+                           {{"buffer":0,"byteOffset":48,"byteLength":96,"byteStride":24}},
+                           {{"buffer":0,"byteOffset":144,"byteLength":44}},
+                           {{"buffer":0,"byteOffset":188,"byteLength":1}},
+                           {{"buffer":0,"byteOffset":192,"byteLength":12}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3"}},
+                         {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
+                         {{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3",
+                           "sparse":{{"count":1,"indices":{{"bufferView":3,"componentType":5121}},
+                                      "values":{{"bufferView":4}}}}}},
+                         {{"bufferView":2,"componentType":5123,"count":6,"type":"SCALAR"}},
+                         {{"bufferView":2,"byteOffset":12,"componentType":5121,"count":6,"type":"SCALAR"}},
+                         {{"bufferView":2,"byteOffset":20,"componentType":5125,"count":6,"type":"SCALAR"}}]}}"#,
+            len = bin.len()
+        );
+        let gltf = gltf::Gltf::from_slice_without_validation(json.as_bytes()).unwrap();
+        let buffers = vec![bin];
+        let prims: Vec<_> = gltf.meshes().next().unwrap().primitives().collect();
+        for (n, prim) in prims.iter().enumerate() {
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|v| v.as_slice()));
+            let read: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
+            let position = prim.get(&gltf::Semantic::Positions).unwrap();
+            match packed_floats::<3>(&position, &buffers) {
+                Some(p) => {
+                    assert_eq!(n, 0, "only the first primitive's positions are packed");
+                    assert_eq!(p, read);
+                }
+                None => assert_ne!(n, 0, "strided and sparse positions go to the reader"),
+            }
+            let indices = prim.indices().unwrap();
+            let read: Vec<u32> = reader.read_indices().unwrap().into_u32().collect();
+            assert_eq!(packed_indices(&indices, &buffers), Some(read.clone()));
+            assert_eq!(read, order);
+        }
+        // The sparse accessor's substitution is the reader's to make.
+        let reader = prims[2].reader(|b| buffers.get(b.index()).map(|v| v.as_slice()));
+        assert_eq!(
+            reader.read_positions().unwrap().nth(2),
+            Some([9.0, 9.0, 9.0])
+        );
+        // Asked for the wrong width, a packed accessor is not read as packed.
+        assert!(
+            packed_floats::<2>(&prims[0].get(&gltf::Semantic::Positions).unwrap(), &buffers)
+                .is_none()
+        );
     }
 
     #[test]
