@@ -1451,12 +1451,20 @@ mod tests {
         assert!(decode_data_uri("data:application/octet-stream;base64,!!!").is_none());
     }
 
+    /// Bytes as a glTF buffer's embedded URI.
+    fn data_uri(bytes: &[u8]) -> String {
+        use base64::Engine;
+        format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(bytes)
+        )
+    }
+
     /// Two primitives indexing one shared position accessor: each keeps exactly the vertices
     /// its triangles use, numbered in order of first use, and its triangles name the same
     /// points as in the file.
     #[test]
     fn primitives_sharing_an_accessor_keep_only_their_vertices() {
-        use base64::Engine;
         let points: [[f32; 3]; 6] = [
             [0.0, 0.0, 0.0],
             [1.0, 0.0, 0.0],
@@ -1472,10 +1480,7 @@ mod tests {
             .flat_map(|v| v.to_le_bytes())
             .collect();
         bin.extend(first.iter().chain(&second).flat_map(|i| i.to_le_bytes()));
-        let uri = format!(
-            "data:application/octet-stream;base64,{}",
-            base64::engine::general_purpose::STANDARD.encode(&bin)
-        );
+        let uri = data_uri(&bin);
         let json = format!(
             r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
             "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}},
@@ -1518,7 +1523,6 @@ mod tests {
     /// reader.
     #[test]
     fn packed_accessors_read_as_the_reader_reads_them() {
-        use base64::Engine;
         let points: [[f32; 3]; 4] = [
             [0.5, -1.0, 2.0],
             [3.0, 0.0, -0.25],
@@ -1546,10 +1550,7 @@ mod tests {
         bin.push(2); // 188: the sparse accessor's one index
         bin.extend([0, 0, 0]);
         bin.extend([9.0f32, 9.0, 9.0].iter().flat_map(|v| v.to_le_bytes())); // 192..204
-        let uri = format!(
-            "data:application/octet-stream;base64,{}",
-            base64::engine::general_purpose::STANDARD.encode(&bin)
-        );
+        let uri = data_uri(&bin);
         let json = format!(
             r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
             "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":3}},
