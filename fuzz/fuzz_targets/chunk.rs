@@ -1,4 +1,4 @@
 #![no_main]
 //! Fuzz target: see `magg::fuzzing::chunk`.
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| magg::fuzzing::chunk(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| magg_fuzz::fuzzing::chunk(data));

@@ -1,4 +1,4 @@
 #![no_main]
 //! Fuzz target: see `magg::fuzzing::gltf`.
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| magg::fuzzing::gltf(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| magg_fuzz::fuzzing::gltf(data));

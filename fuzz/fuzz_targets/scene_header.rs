@@ -1,4 +1,4 @@
 #![no_main]
 //! Fuzz target: see `magg::fuzzing::scene_header`.
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| magg::fuzzing::scene_header(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| magg_fuzz::fuzzing::scene_header(data));

@@ -1,4 +1,4 @@
 #![no_main]
 //! Fuzz target: see `magg::fuzzing::topology`.
 
-libfuzzer_sys::fuzz_target!(|data: &[u8]| magg::fuzzing::topology(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| magg_fuzz::fuzzing::topology(data));
