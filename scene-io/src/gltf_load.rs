@@ -1014,6 +1014,28 @@ fn packed_floats<const N: usize>(
     )
 }
 
+/// Attribute `semantic` of `prim` where `wanted` (else none): straight from its bytes where it
+/// is packed floats ([`packed_floats`]), else by `read`, the gltf crate's reader, which
+/// converts whatever else it may be.
+fn read_attribute<const N: usize, T: From<[f32; N]>>(
+    prim: &gltf::Primitive,
+    buffers: &[Vec<u8>],
+    wanted: bool,
+    semantic: gltf::Semantic,
+    read: impl FnOnce() -> Option<Vec<T>>,
+) -> Vec<T> {
+    if !wanted {
+        return Vec::new();
+    }
+    match prim
+        .get(&semantic)
+        .and_then(|a| packed_floats::<N>(&a, buffers))
+    {
+        Some(values) => values.into_iter().map(T::from).collect(),
+        None => read().unwrap_or_default(),
+    }
+}
+
 /// A packed accessor of unsigned integer indices, as [`packed_floats`] reads floats.
 fn packed_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<u32>> {
     if acc.dimensions() != Dimensions::Scalar {
@@ -1166,59 +1188,36 @@ fn read_primitive(
         _ => Vec::new(),
     };
 
-    // Each attribute straight from its bytes where it is packed floats, else by the reader.
-    let packed = |semantic: gltf::Semantic| prim.get(&semantic);
-    let normals: Vec<Vec3> = if !has_normals {
-        Vec::new()
-    } else if let Some(n) = packed(gltf::Semantic::Normals).and_then(|a| packed_floats(&a, buffers))
-    {
-        n.into_iter().map(Vec3::from).collect()
-    } else {
-        reader
-            .read_normals()
-            .map(|it| it.map(Vec3::from).collect())
-            .unwrap_or_default()
-    };
-    let tangents: Vec<Vec4> = if !has_tangents {
-        Vec::new()
-    } else if let Some(t) =
-        packed(gltf::Semantic::Tangents).and_then(|a| packed_floats(&a, buffers))
-    {
-        t.into_iter().map(Vec4::from).collect()
-    } else {
-        reader
-            .read_tangents()
-            .map(|it| it.map(Vec4::from).collect())
-            .unwrap_or_default()
-    };
+    let normals: Vec<Vec3> =
+        read_attribute::<3, _>(prim, buffers, has_normals, gltf::Semantic::Normals, || {
+            reader.read_normals().map(|it| it.map(Vec3::from).collect())
+        });
+    let tangents: Vec<Vec4> = read_attribute::<4, _>(
+        prim,
+        buffers,
+        has_tangents,
+        gltf::Semantic::Tangents,
+        || {
+            reader
+                .read_tangents()
+                .map(|it| it.map(Vec4::from).collect())
+        },
+    );
     let uv = |set: u32, has: bool| -> Vec<Vec2> {
-        if !has {
-            Vec::new()
-        } else if let Some(t) =
-            packed(gltf::Semantic::TexCoords(set)).and_then(|a| packed_floats(&a, buffers))
-        {
-            t.into_iter().map(Vec2::from).collect()
-        } else {
+        read_attribute::<2, _>(prim, buffers, has, gltf::Semantic::TexCoords(set), || {
             reader
                 .read_tex_coords(set)
                 .map(|it| it.into_f32().map(Vec2::from).collect())
-                .unwrap_or_default()
-        }
+        })
     };
     let (uv0, uv1) = (uv(0, has_uv0), uv(1, has_uv1));
     // Colors of three components get an alpha of one from the reader: only four are packed.
-    let colors: Vec<Vec4> = if !has_colors {
-        Vec::new()
-    } else if let Some(c) =
-        packed(gltf::Semantic::Colors(0)).and_then(|a| packed_floats(&a, buffers))
-    {
-        c.into_iter().map(Vec4::from).collect()
-    } else {
-        reader
-            .read_colors(0)
-            .map(|it| it.into_rgba_f32().map(Vec4::from).collect())
-            .unwrap_or_default()
-    };
+    let colors: Vec<Vec4> =
+        read_attribute::<4, _>(prim, buffers, has_colors, gltf::Semantic::Colors(0), || {
+            reader
+                .read_colors(0)
+                .map(|it| it.into_rgba_f32().map(Vec4::from).collect())
+        });
 
     // Compact to the vertices used (several meshes may share one large accessor).
     // A table over the accessor's vertices (indices were checked against its length above),
