@@ -13,7 +13,7 @@ HEAD's over BASE's (above 1: HEAD is faster). Hit files of the two are compared 
 too: a kernel change that is only faster must not move a single hit. Nothing is installed.
 """
 
-import argparse
+import ab_pair
 import filecmp
 import json
 import os
@@ -42,18 +42,13 @@ def rate(exe, mesh, rays, repeat, core, any_hit, hits):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("base")
-    ap.add_argument("head")
+    ap = ab_pair.parser(__doc__)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--core", type=int, default=0)
     ap.add_argument("--any-hit", action="store_true", help="any-hit queries instead of closest")
     args = ap.parse_args()
-    for exe in (args.base, args.head):
-        if not os.access(exe, os.X_OK):
-            sys.exit(f"not an executable: {exe}")
+    ab_pair.check_executables(args)
     results = os.path.join(OUT, "embree-results.json")
     try:
         with open(results) as f:

@@ -20,7 +20,7 @@ Example (the spheres on the 86-process cluster at cache 100%):
         --width 320 --height 240 --spp 64 --integrator path --cache 100
 """
 
-import argparse
+import ab_pair
 import filecmp
 import os
 import statistics
@@ -43,10 +43,7 @@ def run(exe, args, out):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("base")
-    ap.add_argument("head")
+    ap = ab_pair.parser(__doc__)
     ap.add_argument("--pairs", type=int, default=10)
     argv = sys.argv[1:]
     if "--" not in argv:
@@ -56,9 +53,7 @@ def main():
     render = argv[cut + 1:]
     if not render:
         sys.exit("give the render's scene and options after --")
-    for exe in (a.base, a.head):
-        if not os.access(exe, os.X_OK):
-            sys.exit(f"not an executable: {exe}")
+    ab_pair.check_executables(a)
     times = {"base": [], "head": []}
     with tempfile.TemporaryDirectory() as tmp:
         outs = {side: os.path.join(tmp, f"{side}.png") for side in times}
