@@ -18,7 +18,7 @@ pub struct LocalCluster {
 
 /// The glibc tunable that gives a process's heap 2 MiB pages (transparent huge pages, on
 /// kernels that offer them on request; elsewhere, and on C libraries without it, nothing).
-pub const HEAP_IN_LARGE_PAGES: &str = "glibc.malloc.hugetlb=1";
+const HEAP_IN_LARGE_PAGES: &str = "glibc.malloc.hugetlb=1";
 
 /// `GLIBC_TUNABLES` for a fork node, given the host's own (`existing`): its heap in large
 /// pages, besides whatever else is set; a `glibc.malloc.hugetlb` chosen already is kept.
@@ -29,7 +29,7 @@ pub const HEAP_IN_LARGE_PAGES: &str = "glibc.malloc.hugetlb=1";
 /// 4 KiB in a 2 MiB page. Render nodes keep small pages: their heaps are a few MB, which
 /// large pages would round up (their caches' walking forms get large pages of their own,
 /// see `render_node::cache`).
-pub fn fork_node_tunables(existing: Option<&OsStr>) -> OsString {
+fn fork_node_tunables(existing: Option<&OsStr>) -> OsString {
     match existing {
         Some(t) if t.to_string_lossy().contains("glibc.malloc.hugetlb=") => t.to_os_string(),
         Some(t) if !t.is_empty() => {
@@ -72,15 +72,13 @@ impl LocalCluster {
             children: Vec::new(),
         };
         let me = std::process::id().to_string();
+        let fork_tunables = fork_node_tunables(std::env::var_os("GLIBC_TUNABLES").as_deref());
         for role in
             std::iter::repeat_n(Role::Fork, forks).chain(std::iter::repeat_n(Role::Render, renders))
         {
             let mut command = Command::new(program);
             if role == Role::Fork {
-                command.env(
-                    "GLIBC_TUNABLES",
-                    fork_node_tunables(std::env::var_os("GLIBC_TUNABLES").as_deref()),
-                );
+                command.env("GLIBC_TUNABLES", &fork_tunables);
             }
             let child = command
                 .args([

@@ -930,16 +930,7 @@ fn check_accessor(ctx: &Ctx, acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Resul
         let mut last: Option<u64> = None;
         for i in 0..n {
             let at = base + i * stride;
-            let v = match isz {
-                1 => view_data[at] as u64,
-                2 => u16::from_le_bytes([view_data[at], view_data[at + 1]]) as u64,
-                _ => u32::from_le_bytes([
-                    view_data[at],
-                    view_data[at + 1],
-                    view_data[at + 2],
-                    view_data[at + 3],
-                ]) as u64,
-            };
+            let v = u64::from(le_index(&view_data[at..at + isz]));
             if v >= count as u64 || last.is_some_and(|l| v <= l) {
                 return Err(ctx.invalid(format!(
                     "{}: sparse index {v} out of order or range",
@@ -1048,17 +1039,24 @@ fn packed_indices(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<u32>>
         _ => return None,
     };
     let bytes = packed_bytes(acc, buffers, width)?;
+    // One loop per width, so that each reads its width without asking.
     Some(match width {
-        1 => bytes.iter().map(|&b| u32::from(b)).collect(),
-        2 => bytes
-            .chunks_exact(2)
-            .map(|e| u32::from(u16::from_le_bytes([e[0], e[1]])))
-            .collect(),
-        _ => bytes
-            .chunks_exact(4)
-            .map(|e| u32::from_le_bytes([e[0], e[1], e[2], e[3]]))
-            .collect(),
+        1 => bytes.chunks_exact(1).map(le_index).collect(),
+        2 => bytes.chunks_exact(2).map(le_index).collect(),
+        _ => bytes.chunks_exact(4).map(le_index).collect(),
     })
+}
+
+/// An unsigned index of glTF's 1, 2 or 4 bytes, little-endian (0 for any other length,
+/// which callers never pass).
+#[inline(always)]
+fn le_index(bytes: &[u8]) -> u32 {
+    match *bytes {
+        [a] => u32::from(a),
+        [a, b] => u32::from(u16::from_le_bytes([a, b])),
+        [a, b, c, d] => u32::from_le_bytes([a, b, c, d]),
+        _ => 0,
+    }
 }
 
 fn read_primitive(
