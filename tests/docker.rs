@@ -301,6 +301,20 @@ fn the_magg_topology_in_containers_matches_one_process() {
         .map(|m| m["shm_domain"].as_str().unwrap())
         .collect();
     assert_eq!(domains.len(), 85, "a /dev/shm per container: {domains:?}");
+    // The first fork node writes the shares of the cards on its machine (one boot) as
+    // segments, but only its own card can map its segment: the other fork nodes refuse
+    // theirs and get their shares over sockets.
+    let shares: Vec<(u64, u64)> = (stats["nodes"].as_array().unwrap().iter())
+        .filter(|n| n["role"] == "Fork")
+        .map(|n| {
+            let items = n["share_items_in_segment"].as_u64().unwrap();
+            (n["node"].as_u64().unwrap(), items)
+        })
+        .collect();
+    assert_eq!(shares.len(), 5, "{shares:?}");
+    for &(node, items) in &shares {
+        assert_eq!(items > 0, node == 1, "items by fork node: {shares:?}");
+    }
     assert_eq!(stats["at_work"], "auto", "{stats}");
     assert_eq!(stats["machine_limits"], serde_json::json!([]), "{stats}");
     same_bytes(&p.out(), &in_process_here(&p.dir, SMALL_RENDER));

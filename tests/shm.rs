@@ -2,7 +2,8 @@
 //! the fork node's shared-memory segment, with TCP forced they cross sockets, and either way
 //! (also with the delay model on) the image is the same bytes as one process; the stats say
 //! which transport carried how much, chunks are walked in place in the mapping (so a render
-//! node's own memory stays within its budget), and no segment outlives its fork node.
+//! node's own memory stays within its budget), every fork node took its card's share as the
+//! segment the first fork node wrote, and no segment outlives the fork node that wrote it.
 
 mod common;
 use common::*;
@@ -17,12 +18,12 @@ fn helmet() -> String {
         .to_string()
 }
 
-/// Renders on a spawned tiny cluster and returns the stats.
+/// Renders on a spawned cluster of three cards of two render nodes and returns the stats.
 fn cluster(dir: &Path, name: &str, args: &[&str], reference: &Path) -> serde_json::Value {
     let out = dir.join(format!("{name}.png"));
     let stats = dir.join(format!("{name}.json"));
     let o = run(host()
-        .args(["render", "--quiet", "--spawn", "tiny"])
+        .args(["render", "--quiet", "--spawn", "grid:3x1x2"])
         .args(args)
         .arg("-o")
         .arg(&out)
@@ -35,6 +36,21 @@ fn cluster(dir: &Path, name: &str, args: &[&str], reference: &Path) -> serde_jso
 
 fn u(v: &serde_json::Value) -> u64 {
     v.as_u64().unwrap()
+}
+
+/// Every fork node of the (one-machine) cluster took its card's share as the segment the
+/// first fork node wrote, and together they hold the whole scene.
+fn shares_came_as_segments(v: &serde_json::Value) {
+    let forks: Vec<&serde_json::Value> = (v["nodes"].as_array().unwrap().iter())
+        .filter(|n| n["role"] == "Fork")
+        .collect();
+    let items: Vec<u64> = (forks.iter())
+        .map(|n| u(&n["share_items_in_segment"]))
+        .collect();
+    assert_eq!(items.len(), 3, "three cards");
+    assert!(items.iter().all(|&i| i > 0), "items by card: {items:?}");
+    let scene = u(&v["chunks"]) + u(&v["texture_tiles"]);
+    assert_eq!(items.iter().sum::<u64>(), scene, "items by card: {items:?}");
 }
 
 /// No segment of the render's fork nodes is left in /dev/shm.
@@ -98,6 +114,7 @@ fn shared_memory_and_forced_tcp_give_the_bytes_of_one_process() {
             "{n}"
         );
     }
+    shares_came_as_segments(&auto);
     no_segment_left(&auto);
 
     let tcp = cluster(
@@ -114,6 +131,8 @@ fn shared_memory_and_forced_tcp_give_the_bytes_of_one_process() {
     for n in tcp["nodes"].as_array().unwrap() {
         assert_eq!(u(&n["chunks_in_place"]), 0, "{n}");
     }
+    // Render nodes do not read the segments, but fork nodes still serve from them.
+    shares_came_as_segments(&tcp);
     no_segment_left(&tcp);
 
     // With the paper's delays the fork node still times each shared-memory read.

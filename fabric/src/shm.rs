@@ -312,6 +312,11 @@ impl Segment {
         bytemuck::cast_slice(&self.map[..])
     }
 
+    /// The items of which the segment holds `part`, in no particular order.
+    pub fn ids(&self, part: Part) -> impl Iterator<Item = DataId> + '_ {
+        (self.index.keys()).filter_map(move |&(id, p)| (p == part).then_some(id))
+    }
+
     pub fn len(&self) -> usize {
         self.index.len()
     }
@@ -440,6 +445,10 @@ mod tests {
         assert_eq!(s.read(DataId::Chunk(4)).unwrap(), &[1, 2, 3]);
         assert_eq!(s.read(DataId::Tile(9)).unwrap(), &[7; 5]);
         assert!(s.read(DataId::Chunk(9)).is_none());
+        let mut words: Vec<_> = s.ids(Part::Words).collect();
+        words.sort_by_key(|id| format!("{id:?}"));
+        assert_eq!(words, [DataId::Chunk(4), DataId::Tile(9)]);
+        assert_eq!(s.ids(Part::Walk).collect::<Vec<_>>(), [DataId::Chunk(4)]);
         let (start, end) = s.place(DataId::Chunk(4), Part::Walk).unwrap();
         assert_eq!(&s.words()[start..end], &[8; 32]);
         assert!(s.place(DataId::Tile(9), Part::Walk).is_none());

@@ -126,9 +126,10 @@ pub(crate) fn round_robin(count: usize, forks: &[NodeId]) -> Vec<NodeId> {
 }
 
 /// Where every chunk and tile of a prepared scene lives.
-struct Placement {
-    chunk_owner: Vec<NodeId>,
-    tile_owner: Vec<NodeId>,
+#[derive(Clone)]
+pub(crate) struct Placement {
+    pub chunk_owner: Vec<NodeId>,
+    pub tile_owner: Vec<NodeId>,
 }
 
 impl ForkNode {
@@ -201,24 +202,36 @@ impl ForkNode {
             forks.len()
         );
         let _ = f.send_direct(0, &header_msg, header_words.clone(), 0, 0);
-        for &fork in &forks {
-            if fork == f.me() {
-                self.keep_share(&header, &placement, &data);
-            } else {
-                let _ = f.send_direct(fork, &header_msg, header_words.clone(), 0, 0);
+        // The cards on this machine get their shares as segments that this node writes (see
+        // `segment`); the others over their sockets.
+        let shm_here = std::path::Path::new(fabric::shm::SHM_DIR).is_dir();
+        let here: Vec<NodeId> = (forks.iter().copied())
+            .filter(|&k| shm_here && (k == f.me() || f.same_machine(k)))
+            .collect();
+        for &fork in forks.iter().filter(|&&k| k != f.me()) {
+            let _ = f.send_direct(fork, &header_msg, header_words.clone(), 0, 0);
+            if !here.contains(&fork) {
                 self.send_share(fork, &placement, &data);
             }
         }
+        if !here.is_empty() {
+            let node = self.clone();
+            tokio::task::spawn_blocking(move || {
+                node.share_through_segments(here, header, placement, data)
+            });
+        } else {
+            self.on_header(
+                header,
+                placement.chunk_owner.clone(),
+                placement.tile_owner.clone(),
+            );
+            self.keep_share(&placement, &data);
+        }
     }
 
-    /// This node's own share goes straight into its memory.
-    fn keep_share(self: &Arc<ForkNode>, header: &[u8], placement: &Placement, data: &MemoryData) {
+    /// This node's own share goes straight into its memory (the header is there already).
+    pub(crate) fn keep_share(self: &Arc<ForkNode>, placement: &Placement, data: &MemoryData) {
         let me = self.fabric.me();
-        self.on_header(
-            header.to_vec(),
-            placement.chunk_owner.clone(),
-            placement.tile_owner.clone(),
-        );
         let mut count = 0u32;
         for (i, c) in owned(&data.chunks, &placement.chunk_owner, me) {
             // The walking form the preparation built, kept for the segment.
@@ -235,7 +248,7 @@ impl ForkNode {
     }
 
     /// Another fork node's share travels to it, then the count that tells it all is there.
-    fn send_share(&self, fork: NodeId, placement: &Placement, data: &MemoryData) {
+    pub(crate) fn send_share(&self, fork: NodeId, placement: &Placement, data: &MemoryData) {
         let f = &self.fabric;
         let hold = |id: DataId, words: Box<[u32]>| {
             let _ = f.send_direct(fork, &Message::Hold { id }, words, 0, 0);
@@ -254,7 +267,7 @@ impl ForkNode {
 }
 
 /// The items of `items` that `owners` places on `fork`, with their ids.
-fn owned<'a, T>(
+pub(crate) fn owned<'a, T>(
     items: &'a [T],
     owners: &'a [NodeId],
     fork: NodeId,

@@ -2,8 +2,9 @@
 //!
 //! The first fork node (the paper's FP (0,-1)) receives the scene from the host, prepares it
 //! (chunks, both BVH levels, lights, texture tiles), places the chunks and tiles across all
-//! fork nodes' shared memories and sends every fork node the header and address table. Each
-//! fork node then gives the render nodes of its card the scene minus shape and texture data,
+//! fork nodes' shared memories and sends every fork node the header and address table; the
+//! shares of the cards on its own machine it writes as their shared-memory segments itself.
+//! Each fork node then gives the render nodes of its card the scene minus shape and texture data,
 //! by DMA; serves their demand requests by serial link or DMA, reading other cards' memories
 //! over the G-bus; and writes the pixel rows they send into the host's frame buffer. The
 //! first fork node also arbitrates the two G-buses for everyone.
@@ -22,7 +23,8 @@
 //! * `serving`: demand requests, and the card's DMA bus timing.
 //! * `gbus`: reads from other cards' memories and, on the first fork node, bus arbitration.
 //! * `segment`: the card's memory published as a shared-memory segment for render nodes on
-//!   this machine, and other cards' announcements passed on.
+//!   this machine (on the first fork node, every card's on its machine), and other cards'
+//!   announcements passed on.
 //!
 //! Pixel rows need no state: they are passed on to the host as they come.
 
@@ -46,7 +48,7 @@ use assembly::SceneAssembly;
 use gbus::GBus;
 use handout::Handout;
 use memory::SharedMemory;
-use segment::SegmentSlot;
+use segment::{Announced, SegmentSlot, SharesInSegments};
 use serving::Serving;
 
 pub struct Config {
@@ -61,8 +63,8 @@ pub async fn run(config: Config) -> Result<(), RoleError> {
         node: Arc::new(ForkNode::new(fabric.clone(), slot)),
     })
     .await;
-    // The card's segment goes with the fork node; render nodes keep their mappings.
-    drop(segment.lock().expect("segment lock").take());
+    // The segments this node wrote go with it; render nodes keep their mappings.
+    segment.lock().expect("segment lock").clear();
     ended
 }
 
@@ -75,14 +77,22 @@ struct ForkNode {
     handout: Handout,
     serving: Serving,
     gbus: GBus,
-    /// This card's memory as a shared-memory segment, once published.
+    /// The shared-memory segments this node wrote: its card's memory, and on the first fork
+    /// node the other cards' on its machine.
     segment: SegmentSlot,
+    /// What this card's render nodes are told of segments.
+    announced: Mutex<Announced>,
+    /// On the first fork node: segments written for other cards, until their fork nodes
+    /// answer.
+    shares: Mutex<SharesInSegments>,
 }
 
 impl ForkNode {
     fn new(fabric: Fabric, segment: SegmentSlot) -> ForkNode {
         ForkNode {
             segment,
+            announced: Mutex::default(),
+            shares: Mutex::default(),
             assembly: Mutex::default(),
             memory: Mutex::default(),
             handout: Handout::default(),
@@ -161,6 +171,16 @@ impl ForkNode {
                         .await
                 });
             }
+            Message::ShareInSegment { count, segments } => {
+                if let Via::Direct(from) = via {
+                    self.on_share_in_segment(from, count, segments);
+                }
+            }
+            Message::ShareAnswer { adopted } => {
+                if let Via::Direct(from) = via {
+                    self.on_share_answer(from, adopted);
+                }
+            }
             Message::SharedSegment { .. } => {
                 if let Via::Direct(from) = via {
                     self.relay_segment(from, &msg);
@@ -212,6 +232,7 @@ impl ForkNode {
             bytes_forwarded: c.bytes_forwarded,
             peak_rss_bytes: fabric::peak_rss_bytes(),
             peak_private_bytes: fabric::private_rss_bytes(),
+            share_items_in_segment: self.memory.lock().expect("memory lock").adopted_count as u64,
             ..NodeStats::default()
         }
     }

@@ -1,9 +1,11 @@
 //! A card's shared memory: the scene header, the address table, and the chunks and texture
-//! tiles this card holds, kept as the word blocks they travel as. It fills from the first
-//! fork node's placement, and is complete once the header and every announced item are here.
+//! tiles this card holds, kept as the word blocks they travel as, or read from the segment
+//! the first fork node wrote for the card. It fills from the first fork node's placement,
+//! and is complete once the header and every announced item are here.
 
 use std::{collections::HashMap, sync::Arc};
 
+use fabric::shm::Segment;
 use protocol::{DataId, NodeId, decode_value};
 use renderer::SceneHeader;
 
@@ -17,6 +19,12 @@ pub(crate) struct SharedMemory {
     pub chunk_owner: Vec<NodeId>,
     pub tile_owner: Vec<NodeId>,
     pub data: HashMap<DataId, Arc<[u32]>>,
+    /// This card's share as the segment the first fork node wrote for it, when it came that
+    /// way: items are read from the mapping when asked for (those held later, a lost card's
+    /// share rebuilt here, are in `data`).
+    pub adopted: Option<Arc<Segment>>,
+    /// How many items of the share the segment holds (0 when it came as `Hold`s).
+    pub adopted_count: u32,
     /// Walking forms of the chunks held, made when each was checked on arrival (or kept from
     /// the preparation), for the segment ([`ForkNode::publish_segment`]), which takes them:
     /// a chunk is transcoded once on its card, not once to check it and again to publish it.
@@ -47,6 +55,22 @@ impl SharedMemory {
         let chunks = (0..self.chunk_owner.len() as u32).map(DataId::Chunk);
         let tiles = (0..self.tile_owner.len() as u32).map(DataId::Tile);
         chunks.chain(tiles).collect()
+    }
+
+    /// Item `id`, if this card holds it.
+    pub fn item(&self, id: DataId) -> Option<Arc<[u32]>> {
+        let held = self.data.get(&id).cloned();
+        held.or_else(|| Some(Arc::from(self.adopted.as_ref()?.read(id)?)))
+    }
+
+    /// Takes `segment`, holding this card's `count` items (checked by the caller), as its
+    /// share: the segment has their walking forms already.
+    pub fn adopt(&mut self, segment: Arc<Segment>, count: u32) {
+        self.adopted_count = count;
+        self.adopted = Some(segment);
+        self.walks_taken = true;
+        self.received += count;
+        self.expected = Some(count);
     }
 
     /// Keeps an item, and a chunk's walking form when it has one; an item sent twice counts

@@ -137,7 +137,7 @@ impl ForkNode {
             if let DataId::Synthetic { .. } = id {
                 return Some(self.read_local(id));
             }
-            if let Some(d) = self.memory.lock().expect("memory lock").data.get(&id) {
+            if let Some(d) = self.memory.lock().expect("memory lock").item(id) {
                 return Some(d.to_vec().into_boxed_slice());
             }
             if Instant::now() >= deadline {
@@ -151,8 +151,8 @@ impl ForkNode {
     /// the model time it is ready here.
     pub(crate) async fn get(&self, id: DataId) -> Option<(Arc<[u32]>, u64)> {
         let now = now_ns();
-        if let Some(d) = self.memory.lock().expect("memory lock").data.get(&id) {
-            return Some((d.clone(), now));
+        if let Some(d) = self.memory.lock().expect("memory lock").item(id) {
+            return Some((d, now));
         }
         let owner = self.memory.lock().expect("memory lock").owner(id)?;
         self.fetch_remote(id, owner, now)
@@ -171,8 +171,7 @@ impl ForkNode {
                 .memory
                 .lock()
                 .expect("memory lock")
-                .data
-                .get(&id)
+                .item(id)
                 .map(|d| d.to_vec().into_boxed_slice())
                 .unwrap_or_default(),
         }

@@ -1350,6 +1350,7 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
             chunks_in_place,
             paths_deferred,
             deferred_fetches,
+            share_items_in_segment,
             records: _,
         } = n;
         t.subscreens += subscreens;
@@ -1382,6 +1383,7 @@ fn sum_node_stats(nodes: &[NodeStats]) -> NodeStats {
         t.chunks_in_place += chunks_in_place;
         t.paths_deferred += paths_deferred;
         t.deferred_fetches += deferred_fetches;
+        t.share_items_in_segment += share_items_in_segment;
     }
     t
 }
@@ -1598,6 +1600,7 @@ mod tests {
             chunks_in_place: k,
             paths_deferred: k,
             deferred_fetches: k,
+            share_items_in_segment: k,
             ..NodeStats::default()
         };
         let t = sum_node_stats(&[node(1), node(2)]);

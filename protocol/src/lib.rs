@@ -37,9 +37,9 @@ pub use codec::{FrameReader, FrameWriter, ReadError};
 pub use frame::{BROADCAST, Frame, FrameHeader, HEADER_LEN, MAX_DATA, MAX_META, Mode, NodeId};
 pub use handshake::{ConnectionKind, HandshakeError, Identity, Secret};
 pub use message::{
-    AskVia, CoherentRays, DataId, DecodeError, DmaTransport, JobSpec, Message, NodeStats, Rect,
-    Role, SubscreenWork, Transfer, TransferMode, bytes_to_words, decode_value, encode_value,
-    words_to_bytes,
+    AskVia, CardSegment, CoherentRays, DataId, DecodeError, DmaTransport, JobSpec, Message,
+    NodeStats, Rect, Role, SubscreenWork, Transfer, TransferMode, bytes_to_words, decode_value,
+    encode_value, words_to_bytes,
 };
 
 /// Bumped whenever the frame layout or the message set changes incompatibly.

@@ -347,6 +347,41 @@ pub enum Message {
     },
     /// The answer to a request ahead when no subscreen is queued: ask again when done.
     NothingAhead,
+    /// The first fork node to another on its machine: that card's share of the scene,
+    /// `count` items, is already written as its shared-memory segment (words and walking
+    /// forms), instead of coming as `Hold`s; `segments` are the segments of every card it
+    /// wrote, this one's among them, for the card's render nodes to map before they start.
+    /// The fork node answers with [`Message::ShareAnswer`]; one that cannot use its segment
+    /// gets its share as `Hold`s.
+    ShareInSegment {
+        count: u32,
+        segments: Vec<CardSegment>,
+    },
+    /// Whether a fork node took its card's segment from a [`Message::ShareInSegment`].
+    ShareAnswer {
+        adopted: bool,
+    },
+}
+
+/// A card's memory published as a shared-memory segment: as [`Message::SharedSegment`] says.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CardSegment {
+    pub card: NodeId,
+    pub name: String,
+    pub nonce: [u32; 4],
+    pub bytes: u64,
+}
+
+impl CardSegment {
+    /// The announcement that tells a render node of this segment.
+    pub fn announcement(&self) -> Message {
+        Message::SharedSegment {
+            card: self.card,
+            name: self.name.clone(),
+            nonce: self.nonce,
+            bytes: self.bytes,
+        }
+    }
 }
 
 /// How render nodes get shape and texture data.
@@ -432,6 +467,10 @@ pub struct NodeStats {
     pub paths_deferred: u64,
     #[serde(default)]
     pub deferred_fetches: u64,
+    /// Fork nodes: items of the card's share taken from the segment the first fork node
+    /// wrote for the card on their shared machine (0 where the share came over a socket).
+    #[serde(default)]
+    pub share_items_in_segment: u64,
     /// Render nodes: what each subscreen they rendered cost, in the order they finished.
     pub records: Vec<SubscreenWork>,
 }
@@ -566,6 +605,8 @@ impl Message {
             Message::Failed { .. } => "Failed",
             Message::NodeDown { .. } => "NodeDown",
             Message::NothingAhead => "NothingAhead",
+            Message::ShareInSegment { .. } => "ShareInSegment",
+            Message::ShareAnswer { .. } => "ShareAnswer",
         }
     }
 }

@@ -34,7 +34,15 @@ impl std::ops::Deref for Mapped {
 
 #[derive(Default)]
 pub struct SharedSegments {
-    by_card: RwLock<HashMap<NodeId, Arc<Mapped>>>,
+    by_card: RwLock<HashMap<NodeId, Known>>,
+}
+
+/// A card's mapping, with the name and nonce it was announced with.
+#[derive(Clone)]
+struct Known {
+    name: String,
+    nonce: [u32; 4],
+    mapped: Arc<Mapped>,
 }
 
 impl SharedSegments {
@@ -57,11 +65,26 @@ impl SharedSegments {
         nonce: [u32; 4],
         bytes: u64,
     ) -> Result<(), ShmError> {
-        let segment = Segment::open(dir, name, nonce, bytes)?;
-        self.by_card
-            .write()
+        // A card's segment can be announced twice (by the fork node that wrote it and by
+        // the card's own): mapped once.
+        let known = self
+            .by_card
+            .read()
             .expect("segments lock")
-            .insert(card, Arc::new(Mapped(segment)));
+            .get(&card)
+            .cloned();
+        if known.is_some_and(|k| k.name == name && k.nonce == nonce) {
+            return Ok(());
+        }
+        let segment = Segment::open(dir, name, nonce, bytes)?;
+        self.by_card.write().expect("segments lock").insert(
+            card,
+            Known {
+                name: name.to_string(),
+                nonce,
+                mapped: Arc::new(Mapped(segment)),
+            },
+        );
         Ok(())
     }
 
@@ -71,7 +94,7 @@ impl SharedSegments {
             .read()
             .expect("segments lock")
             .get(&card)
-            .cloned()
+            .map(|k| k.mapped.clone())
     }
 
     /// How many cards' segments are mapped.
@@ -112,6 +135,11 @@ mod tests {
         s.add_in(&dir, 2, &p.name, p.nonce, p.bytes).unwrap();
         assert_eq!(s.count(), 1);
         assert_eq!(s.get(2).unwrap().read(DataId::Tile(0)).unwrap(), &words);
+        // Announced again (by the fork node that wrote it, then by the card's own): the
+        // mapping made first stays.
+        let first = s.get(2).unwrap();
+        s.add_in(&dir, 2, &p.name, p.nonce, p.bytes).unwrap();
+        assert!(Arc::ptr_eq(&first, &s.get(2).unwrap()), "mapped once");
         drop(p);
         let _ = std::fs::remove_dir_all(&dir);
     }

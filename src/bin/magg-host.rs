@@ -1183,11 +1183,15 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
     );
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
     eprintln!(
-        "{:<13} {:>5} served {:.1} MiB to render nodes, read {:.1} MiB over the G-bus",
+        "{:<13} {:>5} served {:.1} MiB to render nodes, read {:.1} MiB over the G-bus; {} took their share as a segment the first fork node wrote",
         "fork nodes",
         forks.len(),
         mib(forks.iter().map(|n| n.bytes_served).sum()),
-        mib(forks.iter().map(|n| n.bytes_gbus).sum())
+        mib(forks.iter().map(|n| n.bytes_gbus).sum()),
+        forks
+            .iter()
+            .filter(|n| n.share_items_in_segment > 0)
+            .count()
     );
     eprintln!(
         "render nodes fetched {:.1} MiB (DMA {:.1}, of which {:.1} through shared memory; serial {:.1}); DMA transport {} ({} of {} render nodes on shared memory); {} frames forwarded; peak memory {:.1} MiB in all (per-node figures: --stats)",

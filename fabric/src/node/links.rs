@@ -97,7 +97,9 @@ impl Fabric {
             .insert(peer, same);
     }
 
-    fn same_machine(&self, peer: NodeId) -> bool {
+    /// Whether `peer` runs on this machine (one boot of it), by the address table; taken as
+    /// so where the table did not say.
+    pub fn same_machine(&self, peer: NodeId) -> bool {
         self.inner
             .same_machine
             .lock()
