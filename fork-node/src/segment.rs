@@ -110,7 +110,7 @@ impl ForkNode {
                     (self.segment.lock().expect("segment lock")).insert(fork, published);
                 }
                 Err(e) if fork == me => {
-                    tracing::warn!("fork node {me}: {e}; render nodes read this card over TCP")
+                    tracing::warn!("fork node {me}: {e}; keeps its own share in its memory")
                 }
                 Err(e) => {
                     tracing::warn!(
@@ -382,9 +382,9 @@ fn share_fits(
 /// A card's share written as its segment, with the number of items in it.
 type Written = Result<(Published, u32), ShmError>;
 
-/// Writes the share of each card of `forks` as its segment in `dir`, on as many threads as there are
-/// CPUs (up to one a card): what writing costs is mostly the kernel's, clearing the pages of
-/// the shared-memory file system, so it scales with the CPUs.
+/// Writes the share of each card of `forks` as its segment in `dir`, on as many threads as
+/// there are CPUs (up to one a card): what writing costs is mostly the kernel's, clearing the
+/// pages of the shared-memory file system, so it scales with the CPUs.
 fn write_shares(
     dir: &Path,
     forks: &[NodeId],
