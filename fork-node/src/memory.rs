@@ -158,6 +158,10 @@ impl ForkNode {
             m.chunk_owner = chunk_owner;
             m.tile_owner = tile_owner;
         }
+        // A header after the first comes when a fork node is lost: one that never answered
+        // for its segment will not.
+        let f = &self.fabric;
+        (self.shares.lock().expect("shares lock")).forget_gone(|n| f.is_alive(n));
         self.maybe_ready();
     }
 

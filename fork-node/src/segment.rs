@@ -57,7 +57,34 @@ pub(crate) struct Announced {
 #[derive(Default)]
 pub(crate) struct SharesInSegments {
     waiting: HashSet<NodeId>,
-    scene: Option<(Arc<MemoryData>, Placement)>,
+    scene: Option<Prepared>,
+}
+
+/// The prepared scene and where its items go, for a share sent over a socket.
+type Prepared = (Arc<MemoryData>, Placement);
+
+impl SharesInSegments {
+    /// Fork node `from` answered: `None` if it was not waited for, else the prepared scene
+    /// (while kept), which is let go once nobody is waited for.
+    fn answered(&mut self, from: NodeId) -> Option<Option<Prepared>> {
+        if !self.waiting.remove(&from) {
+            return None;
+        }
+        let scene = self.scene.clone();
+        if self.waiting.is_empty() {
+            self.scene = None;
+        }
+        Some(scene)
+    }
+
+    /// Stops waiting for fork nodes that are gone (the host rebuilds their shares from its
+    /// own copy), so that the prepared scene is not kept for an answer that cannot come.
+    pub(crate) fn forget_gone(&mut self, alive: impl Fn(NodeId) -> bool) {
+        self.waiting.retain(|&n| alive(n));
+        if self.waiting.is_empty() {
+            self.scene = None;
+        }
+    }
 }
 
 /// Why a fork node does not take the segment written for its card.
@@ -154,18 +181,9 @@ impl ForkNode {
     /// On the first fork node: fork node `from` took the segment written for its card, or
     /// could not map it and gets its share over the socket instead.
     pub(crate) fn on_share_answer(&self, from: NodeId, adopted: bool) {
-        let scene = {
-            let mut s = self.shares.lock().expect("shares lock");
-            // An answer to nothing asked is ignored.
-            if !s.waiting.remove(&from) {
-                return;
-            }
-            let scene = s.scene.clone();
-            if s.waiting.is_empty() {
-                s.scene = None;
-            }
-            scene
-        };
+        let answered = self.shares.lock().expect("shares lock").answered(from);
+        // An answer to nothing asked is ignored.
+        let Some(scene) = answered else { return };
         if adopted {
             return;
         }
@@ -477,6 +495,38 @@ mod tests {
             tile_owner: placement.tile_owner.clone(),
             ..SharedMemory::default()
         }
+    }
+
+    #[test]
+    fn the_prepared_scene_is_kept_until_every_fork_node_still_alive_has_answered() {
+        let (_, data) = scene();
+        let placement = Placement {
+            chunk_owner: vec![],
+            tile_owner: vec![],
+        };
+        let mut s = SharesInSegments {
+            waiting: [2, 3, 4].into(),
+            scene: Some((Arc::new(data), placement)),
+        };
+        assert!(s.answered(9).is_none(), "not waited for");
+        assert!(matches!(s.answered(2), Some(Some(_))), "kept for a refusal");
+        s.forget_gone(|n| n != 3);
+        assert!(s.scene.is_some(), "4 has not answered");
+        assert!(matches!(s.answered(4), Some(Some(_))));
+        assert!(s.scene.is_none() && s.waiting.is_empty(), "let go");
+        assert!(s.answered(4).is_none(), "answered once");
+        let mut s = SharesInSegments {
+            waiting: [2].into(),
+            scene: Some((
+                Arc::new(scene().1),
+                Placement {
+                    chunk_owner: vec![],
+                    tile_owner: vec![],
+                },
+            )),
+        };
+        s.forget_gone(|_| false);
+        assert!(s.scene.is_none(), "nobody left to answer");
     }
 
     #[test]
