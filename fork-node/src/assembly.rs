@@ -214,18 +214,16 @@ impl ForkNode {
                 self.send_share(fork, &placement, &data);
             }
         }
-        if !here.is_empty() {
-            let node = self.clone();
-            tokio::task::spawn_blocking(move || {
-                node.share_through_segments(here, header, placement, data)
-            });
-        } else {
-            self.on_header(
-                header,
-                placement.chunk_owner.clone(),
-                placement.tile_owner.clone(),
-            );
+        self.on_header(
+            header,
+            placement.chunk_owner.clone(),
+            placement.tile_owner.clone(),
+        );
+        if here.is_empty() {
             self.keep_share(&placement, &data);
+        } else {
+            let node = self.clone();
+            tokio::task::spawn_blocking(move || node.share_through_segments(here, placement, data));
         }
     }
 

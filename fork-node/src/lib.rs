@@ -181,7 +181,7 @@ impl ForkNode {
                     self.on_share_answer(from, adopted);
                 }
             }
-            Message::SharedSegment { .. } => {
+            Message::SharedSegment(_) => {
                 if let Via::Direct(from) = via {
                     self.relay_segment(from, &msg);
                 }
@@ -232,7 +232,7 @@ impl ForkNode {
             bytes_forwarded: c.bytes_forwarded,
             peak_rss_bytes: fabric::peak_rss_bytes(),
             peak_private_bytes: fabric::private_rss_bytes(),
-            share_items_in_segment: self.memory.lock().expect("memory lock").adopted_count as u64,
+            share_items_in_segment: self.memory.lock().expect("memory lock").adopted_items() as u64,
             ..NodeStats::default()
         }
     }

@@ -5,7 +5,7 @@
 
 use std::{collections::HashMap, sync::Arc};
 
-use fabric::shm::Segment;
+use fabric::shm::{Part, Segment};
 use protocol::{DataId, NodeId, decode_value};
 use renderer::SceneHeader;
 
@@ -22,9 +22,7 @@ pub(crate) struct SharedMemory {
     /// This card's share as the segment the first fork node wrote for it, when it came that
     /// way: items are read from the mapping when asked for (those held later, a lost card's
     /// share rebuilt here, are in `data`).
-    pub adopted: Option<Arc<Segment>>,
-    /// How many items of the share the segment holds (0 when it came as `Hold`s).
-    pub adopted_count: u32,
+    pub adopted: Option<Segment>,
     /// Walking forms of the chunks held, made when each was checked on arrival (or kept from
     /// the preparation), for the segment ([`ForkNode::publish_segment`]), which takes them:
     /// a chunk is transcoded once on its card, not once to check it and again to publish it.
@@ -57,16 +55,28 @@ impl SharedMemory {
         chunks.chain(tiles).collect()
     }
 
-    /// Item `id`, if this card holds it.
+    /// The words of item `id`, if this card holds it: kept, or in the adopted segment.
+    pub fn item_words(&self, id: DataId) -> Option<&[u32]> {
+        let held = self.data.get(&id).map(|w| &w[..]);
+        held.or_else(|| self.adopted.as_ref()?.read(id))
+    }
+
+    /// Item `id`, if this card holds it, shared where it is kept and copied from a segment.
     pub fn item(&self, id: DataId) -> Option<Arc<[u32]>> {
         let held = self.data.get(&id).cloned();
         held.or_else(|| Some(Arc::from(self.adopted.as_ref()?.read(id)?)))
     }
 
+    /// How many items of the share came as a segment (0 when they came as `Hold`s).
+    pub fn adopted_items(&self) -> u32 {
+        self.adopted
+            .as_ref()
+            .map_or(0, |s| s.ids(Part::Words).count() as u32)
+    }
+
     /// Takes `segment`, holding this card's `count` items (checked by the caller), as its
     /// share: the segment has their walking forms already.
-    pub fn adopt(&mut self, segment: Arc<Segment>, count: u32) {
-        self.adopted_count = count;
+    pub fn adopt(&mut self, segment: Segment, count: u32) {
         self.adopted = Some(segment);
         self.walks_taken = true;
         self.received += count;

@@ -101,15 +101,14 @@ pub(crate) enum AdoptError {
 }
 
 impl ForkNode {
-    /// On the first fork node, with the scene prepared: writes the segment of each card of
-    /// `here` (this one and the others on this machine; their fork nodes have the header),
-    /// tells each other fork node that its share is in its segment, and takes its own. A
-    /// share whose segment cannot be written goes over the socket. Runs off the runtime (it
-    /// writes the shares: tens of megabytes).
+    /// On the first fork node, with the scene prepared and its header taken: writes the
+    /// segment of each card of `here` (this one and the others on this machine; their fork
+    /// nodes have the header), tells each other fork node that its share is in its segment,
+    /// and takes its own. A share whose segment cannot be written goes over the socket. Runs
+    /// off the runtime (it writes the shares: tens of megabytes).
     pub(crate) fn share_through_segments(
         self: &Arc<ForkNode>,
         here: Vec<NodeId>,
-        header: Vec<u8>,
         placement: Placement,
         data: MemoryData,
     ) {
@@ -161,11 +160,6 @@ impl ForkNode {
             };
             let _ = f.send_direct(fork, &msg, Box::new([]), 0, 0);
         }
-        self.on_header(
-            header,
-            placement.chunk_owner.clone(),
-            placement.tile_owner.clone(),
-        );
         let own = counts.iter().find(|c| c.0 == me).map(|c| c.1);
         let taken = own.map(|count| self.take_segment(&notices, count));
         match taken {
@@ -240,7 +234,7 @@ impl ForkNode {
         {
             let mut m = self.memory.lock().expect("memory lock");
             share_fits(&m, me, &segment, count)?;
-            m.adopt(Arc::new(segment), count);
+            m.adopt(segment, count);
         }
         let mut a = self.announced.lock().expect("announced lock");
         a.own = Some(own.clone());
@@ -266,7 +260,8 @@ impl ForkNode {
         };
         for s in &others {
             for &r in card {
-                let _ = f.send_direct(r, &s.announcement(), Box::new([]), 0, 0);
+                let announce = Message::SharedSegment(s.clone());
+                let _ = f.send_direct(r, &announce, Box::new([]), 0, 0);
             }
         }
         let Some(own) = own.or_else(|| self.write_segment(kept)) else {
@@ -274,8 +269,9 @@ impl ForkNode {
         };
         let forks = f.topology().fork_nodes();
         let other_forks = forks.into_iter().filter(|&n| n != f.me());
+        let announce = Message::SharedSegment(own);
         for to in card.iter().copied().chain(other_forks) {
-            let _ = f.send_direct(to, &own.announcement(), Box::new([]), 0, 0);
+            let _ = f.send_direct(to, &announce, Box::new([]), 0, 0);
         }
     }
 
@@ -371,7 +367,7 @@ impl ForkNode {
     /// share that fork node's machine too.
     pub(crate) fn relay_segment(&self, from: NodeId, announce: &Message) {
         let f = &self.fabric;
-        if !matches!(announce, Message::SharedSegment { card, .. } if *card == from) {
+        if !matches!(announce, Message::SharedSegment(s) if s.card == from) {
             return;
         }
         for r in self.card_render_nodes() {
@@ -569,9 +565,9 @@ mod tests {
             let e = share_fits(&m, fork, &segment, count + 1).unwrap_err();
             assert!(matches!(e, AdoptError::NotThisShare { .. }), "{e}");
             // Taken, the card serves its items from the mapping.
-            m.adopt(Arc::new(segment), count);
+            m.adopt(segment, count);
             assert!(m.complete());
-            assert_eq!(m.adopted_count, count);
+            assert_eq!(m.adopted_items(), count);
             for (i, c) in owned(&data.chunks, &placement.chunk_owner, fork) {
                 assert_eq!(&m.item(DataId::Chunk(i as u32)).unwrap()[..], c.words());
             }

@@ -137,8 +137,8 @@ impl ForkNode {
             if let DataId::Synthetic { .. } = id {
                 return Some(self.read_local(id));
             }
-            if let Some(d) = self.memory.lock().expect("memory lock").item(id) {
-                return Some(d.to_vec().into_boxed_slice());
+            if let Some(d) = self.memory.lock().expect("memory lock").item_words(id) {
+                return Some(d.into());
             }
             if Instant::now() >= deadline {
                 return None;
@@ -171,8 +171,8 @@ impl ForkNode {
                 .memory
                 .lock()
                 .expect("memory lock")
-                .item(id)
-                .map(|d| d.to_vec().into_boxed_slice())
+                .item_words(id)
+                .map(Box::from)
                 .unwrap_or_default(),
         }
     }

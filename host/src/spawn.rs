@@ -24,7 +24,8 @@ const HEAP_IN_LARGE_PAGES: &str = "glibc.malloc.hugetlb=1";
 /// pages, besides whatever else is set; a `glibc.malloc.hugetlb` chosen already is kept.
 ///
 /// Fork nodes take in the scene's shares (the first fork node prepares the whole scene,
-/// about 240 MB of heap for 1 M triangles; the others about 28 MB each): every fresh 4 KiB
+/// about 240 MB of heap for 1 M triangles; the others, where their shares come over a socket
+/// rather than in a segment the first one wrote, about 28 MB each): every fresh 4 KiB
 /// page costs a fault and a clearing, about 1.9 us on a virtual machine, against 0.42 us per
 /// 4 KiB in a 2 MiB page. Render nodes keep small pages: their heaps are a few MB, which
 /// large pages would round up (their caches' walking forms get large pages of their own,

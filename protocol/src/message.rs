@@ -256,16 +256,10 @@ pub enum Message {
     BusGrant {
         done_ns: u64,
     },
-    /// Fork node `card`'s memory is also published as the shared-memory segment `name` (a
-    /// file name in the machine's shared-memory directory), `bytes` long, whose header holds
-    /// `nonce`. A render node that can map it and finds the nonce is on the same machine and
-    /// may read that card's items from it instead of asking for them; any other stays on TCP.
-    SharedSegment {
-        card: NodeId,
-        name: String,
-        nonce: [u32; 4],
-        bytes: u64,
-    },
+    /// A card's memory is also published as a shared-memory segment ([`CardSegment`]). A
+    /// render node that can map it and finds the nonce is on the same machine and may read
+    /// that card's items from it instead of asking for them; any other stays on TCP.
+    SharedSegment(CardSegment),
     /// A render node reads `id` (held by `owner`'s card) from a shared segment while the
     /// links are delayed: its fork node books the DMA transfer (and the G-bus read) as for
     /// a `DataRequest` and answers with a `DataReply` without data at the model time the
@@ -363,25 +357,14 @@ pub enum Message {
     },
 }
 
-/// A card's memory published as a shared-memory segment: as [`Message::SharedSegment`] says.
+/// Fork node `card`'s memory published as the shared-memory segment `name` (a file name in
+/// the machine's shared-memory directory), `bytes` long, whose header holds `nonce`.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CardSegment {
     pub card: NodeId,
     pub name: String,
     pub nonce: [u32; 4],
     pub bytes: u64,
-}
-
-impl CardSegment {
-    /// The announcement that tells a render node of this segment.
-    pub fn announcement(&self) -> Message {
-        Message::SharedSegment {
-            card: self.card,
-            name: self.name.clone(),
-            nonce: self.nonce,
-            bytes: self.bytes,
-        }
-    }
 }
 
 /// How render nodes get shape and texture data.
@@ -587,7 +570,7 @@ impl Message {
             Message::RemoteData { .. } => "RemoteData",
             Message::BusRequest { .. } => "BusRequest",
             Message::BusGrant { .. } => "BusGrant",
-            Message::SharedSegment { .. } => "SharedSegment",
+            Message::SharedSegment(_) => "SharedSegment",
             Message::SharedRead { .. } => "SharedRead",
             Message::ScenePart { .. } => "ScenePart",
             Message::Header { .. } => "Header",

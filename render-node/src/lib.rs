@@ -61,13 +61,11 @@ impl RoleHandler for RenderNode {
     fn on_message(&mut self, frame: Frame, message: Message, via: Via) {
         let fabric = &self.fabric;
         match message {
-            Message::SharedSegment {
-                card,
-                name,
-                nonce,
-                bytes,
-            } if via == Via::Direct(fabric.serving_fork(fabric.me()).unwrap_or(0)) => {
-                match self.render.segments.add(card, &name, nonce, bytes) {
+            Message::SharedSegment(s)
+                if via == Via::Direct(fabric.serving_fork(fabric.me()).unwrap_or(0)) =>
+            {
+                let card = s.card;
+                match self.render.segments.add(card, &s.name, s.nonce, s.bytes) {
                     Ok(()) => tracing::debug!(
                         "render node {}: reads card {card}'s memory through shared memory",
                         fabric.me()
