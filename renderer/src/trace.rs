@@ -314,6 +314,10 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             q,
             tmax,
             |_| {},
+            // Inlined into the top-level walk: out of line (the compiler's choice), every
+            // chunk a ray enters paid a call with six saved registers and a fresh frame; in
+            // the Cornell box, where a query enters 1.35 chunks, that was 8% of a query.
+            #[inline(always)]
             |chunk_id, tmax| {
                 let chunk = match self.reach(chunk_id, searched, missing, &mut error) {
                     Ok(c) => c,
