@@ -204,9 +204,9 @@ impl ForkNode {
         let _ = f.send_direct(0, &header_msg, header_words.clone(), 0, 0);
         // The cards on this machine get their shares as segments that this node writes (see
         // `segment`); the others over their sockets.
-        let shm_here = std::path::Path::new(fabric::shm::SHM_DIR).is_dir();
+        let dir = self.segment_dir();
         let here: Vec<NodeId> = (forks.iter().copied())
-            .filter(|&k| shm_here && (k == f.me() || f.same_machine(k)))
+            .filter(|&k| dir.is_some() && (k == f.me() || f.same_machine(k)))
             .collect();
         for &fork in forks.iter().filter(|&&k| k != f.me()) {
             let _ = f.send_direct(fork, &header_msg, header_words.clone(), 0, 0);
@@ -219,11 +219,14 @@ impl ForkNode {
             placement.chunk_owner.clone(),
             placement.tile_owner.clone(),
         );
-        if here.is_empty() {
-            self.keep_share(&placement, &data);
-        } else {
-            let node = self.clone();
-            tokio::task::spawn_blocking(move || node.share_through_segments(here, placement, data));
+        match dir {
+            Some(dir) if !here.is_empty() => {
+                let node = self.clone();
+                tokio::task::spawn_blocking(move || {
+                    node.share_through_segments(dir, here, placement, data)
+                });
+            }
+            _ => self.keep_share(&placement, &data),
         }
     }
 

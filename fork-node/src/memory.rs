@@ -74,10 +74,11 @@ impl SharedMemory {
             .map_or(0, |s| s.ids(Part::Words).count() as u32)
     }
 
-    /// Takes `segment`, holding this card's `count` items (checked by the caller), as its
+    /// Takes `segment`, holding exactly this card's items (checked by the caller), as its
     /// share: the segment has their walking forms already.
-    pub fn adopt(&mut self, segment: Segment, count: u32) {
+    pub fn adopt(&mut self, segment: Segment) {
         self.adopted = Some(segment);
+        let count = self.adopted_items();
         self.walks_taken = true;
         self.received += count;
         self.expected = Some(count);

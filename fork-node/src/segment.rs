@@ -101,6 +101,26 @@ pub(crate) enum AdoptError {
 }
 
 impl ForkNode {
+    /// The machine's shared-memory directory, where this node writes segments, with the
+    /// segments of fork nodes that died before removing theirs cleared out; `None` (said
+    /// once) where there is none, and every render node then reads over TCP.
+    pub(crate) fn segment_dir(&self) -> Option<&'static Path> {
+        let me = self.fabric.me();
+        let dir = Path::new(shm::SHM_DIR);
+        if !dir.is_dir() {
+            tracing::info!(
+                "fork node {me}: no {} here; render nodes read over TCP",
+                shm::SHM_DIR
+            );
+            return None;
+        }
+        let stale = shm::remove_stale(dir);
+        if stale > 0 {
+            tracing::info!("fork node {me}: removed {stale} segments left by fork nodes that died");
+        }
+        Some(dir)
+    }
+
     /// On the first fork node, with the scene prepared and its header taken: writes the
     /// segment of each card of `here` (this one and the others on this machine; their fork
     /// nodes have the header), tells each other fork node that its share is in its segment,
@@ -108,6 +128,7 @@ impl ForkNode {
     /// off the runtime (it writes the shares: tens of megabytes).
     pub(crate) fn share_through_segments(
         self: &Arc<ForkNode>,
+        dir: &Path,
         here: Vec<NodeId>,
         placement: Placement,
         data: MemoryData,
@@ -117,7 +138,6 @@ impl ForkNode {
         let data = Arc::new(data);
         let mut notices = Vec::new();
         let mut counts = Vec::new();
-        let dir = Path::new(shm::SHM_DIR);
         for (fork, written) in write_shares(dir, &here, &placement, &data) {
             match written {
                 Ok((published, count)) => {
@@ -234,7 +254,7 @@ impl ForkNode {
         {
             let mut m = self.memory.lock().expect("memory lock");
             share_fits(&m, me, &segment, count)?;
-            m.adopt(segment, count);
+            m.adopt(segment);
         }
         let mut a = self.announced.lock().expect("announced lock");
         a.own = Some(own.clone());
@@ -258,9 +278,8 @@ impl ForkNode {
             let a = self.announced.lock().expect("announced lock");
             (a.own.clone(), a.others.clone())
         };
-        for s in &others {
+        for announce in others.into_iter().map(Message::SharedSegment) {
             for &r in card {
-                let announce = Message::SharedSegment(s.clone());
                 let _ = f.send_direct(r, &announce, Box::new([]), 0, 0);
             }
         }
@@ -279,22 +298,7 @@ impl ForkNode {
     /// checks on arrival (transcoded here for a chunk held without one).
     fn write_segment(&self, mut kept: HashMap<DataId, Vec<u32>>) -> Option<CardSegment> {
         let f = &self.fabric;
-        let dir = Path::new(shm::SHM_DIR);
-        if !dir.is_dir() {
-            tracing::info!(
-                "fork node {}: no {} here; render nodes read this card over TCP",
-                f.me(),
-                shm::SHM_DIR
-            );
-            return None;
-        }
-        let stale = shm::remove_stale(dir);
-        if stale > 0 {
-            tracing::info!(
-                "fork node {}: removed {stale} segments left by fork nodes that died",
-                f.me()
-            );
-        }
+        let dir = self.segment_dir()?;
         let items: Vec<(DataId, Arc<[u32]>)> = {
             let m = self.memory.lock().expect("memory lock");
             let mut items: Vec<_> = m.data.iter().map(|(id, w)| (*id, w.clone())).collect();
@@ -565,7 +569,7 @@ mod tests {
             let e = share_fits(&m, fork, &segment, count + 1).unwrap_err();
             assert!(matches!(e, AdoptError::NotThisShare { .. }), "{e}");
             // Taken, the card serves its items from the mapping.
-            m.adopt(segment, count);
+            m.adopt(segment);
             assert!(m.complete());
             assert_eq!(m.adopted_items(), count);
             for (i, c) in owned(&data.chunks, &placement.chunk_owner, fork) {
