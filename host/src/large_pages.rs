@@ -39,22 +39,22 @@ impl BlockMut for LargePageWords {
 /// and a large page would hold mostly nothing (the Cornell box's forms take 15 KB).
 const WORTH_A_BLOCK: usize = 8 << 20;
 
-/// Prepares a scene as [`renderer::prepare`] does, its walking forms built in one block of
-/// large pages if they are large enough to gain from it (see the module doc).
+/// Prepares a scene as [`renderer::prepare`] does, the chunks' trees made one tree with the
+/// top-level tree and built in one block of large pages if it is large enough to gain from
+/// it (see the module doc; [`renderer::prepare_flat`]): a process that holds every chunk
+/// walks the scene as one tree.
 pub fn prepare(desc: SceneDesc, opts: &PrepareOptions) -> (SceneHeader, MemoryData) {
-    renderer::prepare_with(
-        desc,
-        opts,
-        Some(&|words| {
-            // An empty block: the forms are then built in the heap, as `prepare` builds them.
-            let words = if words.saturating_mul(4) < WORTH_A_BLOCK {
-                0
-            } else {
-                words
-            };
-            Box::new(LargePageWords::new(words))
-        }),
-    )
+    // An empty block where the forms are too small: they are then built in the heap, as
+    // `prepare` builds them.
+    let make = |words: usize| -> Box<dyn BlockMut> {
+        let words = if words.saturating_mul(4) < WORTH_A_BLOCK {
+            0
+        } else {
+            words
+        };
+        Box::new(LargePageWords::new(words))
+    };
+    renderer::prepare_flat(desc, opts, &make)
 }
 
 #[cfg(test)]

@@ -72,9 +72,12 @@ pub struct Node8 {
     pub child: [u32; 8],
     pub first: u32,
     pub inner: u32,
+    /// In a tree made by [`Bvh8::flatten`]: 1 + the chunk whose root this node is, else 0
+    /// (read only where the chunks rays enter are recorded, see [`walk`]).
+    pub root_of: u32,
     /// Fills the node to four cache lines' size explicitly, so that it has no padding bytes
     /// and can be written to and read from plain words (a card's shared memory).
-    pad: [u32; 6],
+    pad: [u32; 5],
 }
 
 // SAFETY: `repr(C)` of `f32` and `u32` arrays only, with the tail padding made an explicit
@@ -86,7 +89,8 @@ unsafe impl bytemuck::Pod for Node8 {}
 const _: () = assert!(size_of::<Node8>() == 256);
 
 impl Node8 {
-    const EMPTY: Node8 = Node8 {
+    /// A node of eight empty slots.
+    pub const EMPTY: Node8 = Node8 {
         planes: [
             [f32::INFINITY; 8],
             [f32::NEG_INFINITY; 8],
@@ -98,7 +102,8 @@ impl Node8 {
         child: [0; 8],
         first: 0,
         inner: 0,
-        pad: [0; 6],
+        root_of: 0,
+        pad: [0; 5],
     };
 
     fn set(&mut self, slot: usize, child: u32, b: &Bounds) {
@@ -188,6 +193,258 @@ pub struct Bvh8 {
     /// checked for its shape only, and this is where its triangle ids are checked instead,
     /// as they are used (one compare per hit, not a pass over every leaf of the chunk).
     pub tris: u32,
+}
+
+/// What [`Bvh8::flatten`] makes: the one tree, and which chunk its parts come from.
+pub struct Flattened {
+    pub form: Bvh8,
+    /// The chunk of each four-triangle block.
+    pub block_chunk: Vec<u32>,
+}
+
+/// Where everything of a [`Bvh8::flatten`]ed tree goes, from the top-level tree and each
+/// chunk's node and block counts: first the top-level nodes and the chunks' roots, breadth
+/// first, each node's inner children given consecutive places as it is reached (a chunk's
+/// root in the slot that held the chunk, with the chunk's box as before); then each chunk's
+/// other nodes, chunk by chunk, in their order; blocks chunk by chunk. A chunk of one
+/// four-triangle block becomes that block in its slot, as the two-level walk skips such a
+/// chunk's tree. So the walk's way down is the same, every node's inner children stay
+/// consecutive and first, and a query meets the same boxes and triangles, in one tree.
+pub struct FlatLayout {
+    heads: Vec<Head>,
+    /// Per head: where its inner children begin, and how many.
+    children: Vec<(usize, usize)>,
+    /// Per chunk: where its nodes after the root go (with a tree), its first block.
+    body_base: Vec<usize>,
+    leaf_base: Vec<u32>,
+    /// Per chunk: its node and block counts.
+    counts: Vec<(usize, usize)>,
+    /// Nodes and blocks in all.
+    pub nodes: usize,
+    pub leaves: usize,
+}
+
+#[derive(Clone, Copy)]
+enum Head {
+    Top(usize),
+    Root(usize),
+}
+
+impl FlatLayout {
+    /// The layout for `top` over chunks of `counts[c]` = (nodes, blocks); `None` where it
+    /// does not fit references.
+    pub fn new(top: &Bvh8, counts: &[(usize, usize)]) -> Option<FlatLayout> {
+        let has_tree = |c: u32| {
+            counts
+                .get((c & !LEAF) as usize)
+                .is_some_and(|&(n, l)| l > 1 && n > 0)
+        };
+        let mut leaf_base = Vec::with_capacity(counts.len());
+        let mut leaves = 0usize;
+        for &(_, l) in counts {
+            leaf_base.push(u32::try_from(leaves).ok()?);
+            leaves += l;
+        }
+        if leaves >= TWO_BLOCKS as usize {
+            return None;
+        }
+        let mut heads = Vec::new();
+        let mut children = Vec::new();
+        if !top.nodes.is_empty() {
+            heads.push(Head::Top(0));
+        }
+        let mut at = 0;
+        while at < heads.len() {
+            let first = heads.len();
+            if let Head::Top(i) = heads[at] {
+                let n = &top.nodes[i];
+                for (slot, &c) in n.child.iter().enumerate() {
+                    if Self::inner_of(top, n, slot) {
+                        heads.push(Head::Top(c as usize));
+                    } else if c & LEAF != 0 && has_tree(c) {
+                        heads.push(Head::Root((c & !LEAF) as usize));
+                    }
+                }
+            }
+            children.push((first, heads.len() - first));
+            at += 1;
+        }
+        let mut body_base = vec![0usize; counts.len()];
+        let mut nodes = heads.len();
+        for (c, &(n, _)) in counts.iter().enumerate() {
+            if has_tree(LEAF | c as u32) {
+                body_base[c] = nodes;
+                nodes += n - 1;
+            }
+        }
+        if nodes >= LEAF as usize {
+            return None;
+        }
+        Some(FlatLayout {
+            heads,
+            children,
+            body_base,
+            leaf_base,
+            counts: counts.to_vec(),
+            nodes,
+            leaves,
+        })
+    }
+
+    fn inner_of(top: &Bvh8, n: &Node8, slot: usize) -> bool {
+        let c = n.child[slot];
+        names_node(c) && slot < n.inner as usize && (c as usize) < top.nodes.len()
+    }
+
+    fn has_tree(&self, c: usize) -> bool {
+        self.counts.get(c).is_some_and(|&(n, l)| l > 1 && n > 0)
+    }
+
+    /// The top-level nodes and chunk roots, which come first.
+    pub fn heads(&self) -> usize {
+        self.heads.len()
+    }
+
+    /// How many of chunk `c`'s nodes go to its body (all but its root, where it has a tree).
+    pub fn body_len(&self, c: usize) -> usize {
+        if self.has_tree(c) {
+            self.counts[c].0 - 1
+        } else {
+            0
+        }
+    }
+
+    /// Words of the tree as [`Bvh8::to_words`] writes it.
+    pub fn words_len(&self) -> usize {
+        walk_words(self.nodes, self.leaves)
+    }
+
+    /// `out` ([`FlatLayout::words_len`] words, 64-byte aligned) cut into what goes there:
+    /// its header written, the head nodes, each chunk's body and its blocks; `None` if
+    /// `out` is not of that length or alignment.
+    #[allow(clippy::type_complexity)]
+    pub fn cut<'a>(
+        &self,
+        out: &'a mut [u32],
+    ) -> Option<(&'a mut [Node8], Vec<(&'a mut [Node8], &'a mut [Tri4])>)> {
+        if out.len() != self.words_len() {
+            return None;
+        }
+        let (head, rest) = out.split_at_mut(WALK_HEADER_WORDS);
+        head.fill(0);
+        head[..3].copy_from_slice(&[WALK_MAGIC, self.nodes as u32, self.leaves as u32]);
+        let (node_words, leaf_words) = rest.split_at_mut(self.nodes * NODE_WORDS);
+        let nodes: &mut [Node8] = bytemuck::try_cast_slice_mut(node_words).ok()?;
+        let leaves: &mut [Tri4] = bytemuck::try_cast_slice_mut(leaf_words).ok()?;
+        let (heads, mut bodies) = nodes.split_at_mut(self.heads.len());
+        let mut leaves = leaves;
+        let mut parts = Vec::with_capacity(self.counts.len());
+        for c in 0..self.counts.len() {
+            let (body, tail) = std::mem::take(&mut bodies).split_at_mut(self.body_len(c));
+            bodies = tail;
+            let (blocks, tail) = std::mem::take(&mut leaves).split_at_mut(self.counts[c].1);
+            leaves = tail;
+            parts.push((body, blocks));
+        }
+        Some((heads, parts))
+    }
+
+    /// The chunk of each block.
+    pub fn block_chunk(&self) -> Vec<u32> {
+        let mut out = Vec::with_capacity(self.leaves);
+        for (c, &(_, l)) in self.counts.iter().enumerate() {
+            out.resize(out.len() + l, c as u32);
+        }
+        out
+    }
+
+    /// Writes chunk `c`'s tree `form` (of `tris` triangles): its nodes after the root into
+    /// `body` ([`FlatLayout::body_len`] of them) and its blocks into `blocks`, references
+    /// moved to their places in the whole tree; returns its root, moved likewise, for
+    /// [`FlatLayout::write_heads`]. `None` if the form is not of the counts given, or names
+    /// a triangle beyond `tris`.
+    pub fn write_chunk(
+        &self,
+        c: usize,
+        form: &Bvh8,
+        tris: u32,
+        body: &mut [Node8],
+        blocks: &mut [Tri4],
+    ) -> Option<Node8> {
+        if (form.nodes.len(), form.leaves.len()) != *self.counts.get(c)?
+            || body.len() != self.body_len(c)
+            || blocks.len() != form.leaves.len()
+            || form
+                .leaves
+                .iter()
+                .any(|b| b.id.iter().any(|&id| id >= tris))
+        {
+            return None;
+        }
+        blocks.copy_from_slice(&form.leaves);
+        let (body_base, leaf_base) = (self.body_base[c], self.leaf_base[c]);
+        // Nodes after the root move to the body, blocks to the chunk's place among all
+        // blocks; an empty slot stays so.
+        let moved = |r: u32| -> u32 {
+            if r & LEAF != 0 {
+                LEAF | (r & TWO_BLOCKS) | ((r & !(LEAF | TWO_BLOCKS)) + leaf_base)
+            } else if r == 0 {
+                0
+            } else {
+                (body_base + r as usize - 1) as u32
+            }
+        };
+        let node = |n: &Node8| Node8 {
+            child: n.child.map(moved),
+            first: if n.inner > 0 { moved(n.first) } else { 0 },
+            ..*n
+        };
+        if self.has_tree(c) {
+            for (out, n) in body.iter_mut().zip(&form.nodes[1..]) {
+                *out = node(n);
+            }
+            Some(Node8 {
+                root_of: c as u32 + 1,
+                ..node(&form.nodes[0])
+            })
+        } else {
+            Some(Node8::EMPTY)
+        }
+    }
+
+    /// Writes the top-level nodes and the chunks' roots (`roots[c]` from
+    /// [`FlatLayout::write_chunk`]) into `heads` ([`FlatLayout::heads`] of them).
+    pub fn write_heads(&self, top: &Bvh8, roots: &[Node8], heads: &mut [Node8]) {
+        for ((h, &(first, count)), out) in self.heads.iter().zip(&self.children).zip(heads) {
+            *out = match *h {
+                Head::Root(c) => roots.get(c).copied().unwrap_or(Node8::EMPTY),
+                Head::Top(i) => {
+                    let src = &top.nodes[i];
+                    let mut n = Node8::EMPTY;
+                    let mut next = 0;
+                    for (slot, &c) in src.child.iter().enumerate() {
+                        let chunk = (c & !LEAF) as usize;
+                        if Self::inner_of(top, src, slot) || (c & LEAF != 0 && self.has_tree(chunk))
+                        {
+                            n.set(next, (first + next) as u32, &src.slot_bounds(slot));
+                            next += 1;
+                        }
+                    }
+                    debug_assert_eq!(next, count);
+                    n.first = if count > 0 { first as u32 } else { 0 };
+                    n.inner = count as u32;
+                    for (slot, &c) in src.child.iter().enumerate() {
+                        let chunk = (c & !LEAF) as usize;
+                        if c & LEAF != 0 && self.counts.get(chunk).is_some_and(|&(_, l)| l == 1) {
+                            n.set(next, LEAF | self.leaf_base[chunk], &src.slot_bounds(slot));
+                            next += 1;
+                        }
+                    }
+                    n
+                }
+            };
+        }
+    }
 }
 
 /// Why a walking form found in a block cannot be walked.
@@ -343,7 +600,7 @@ fn relayout(nodes: &[Node8]) -> Vec<Node8> {
 
 impl Bvh8 {
     /// How many leaf blocks [`Bvh8::for_chunk`] makes of a chunk's wire nodes (at most).
-    fn leaf_count(wire: &[WideNode]) -> usize {
+    pub(crate) fn leaf_count(wire: &[WideNode]) -> usize {
         wire.iter()
             .flatten()
             .map(|&r| match bvh::child(r) {
@@ -426,6 +683,50 @@ impl Bvh8 {
             leaves: Region::empty(),
             tris: 0,
         }
+    }
+
+    /// The top-level tree `top` and the chunk trees below it as one tree, for data that
+    /// holds every chunk in this process: a ray then walks one tree with one stack instead
+    /// of a tree per chunk it enters, each entered through the top-level leaf (finding the
+    /// chunk, its material and its form, and starting a walk of its own). With it, the
+    /// chunk of each block ([`Bvh8::closest_in`] and [`Bvh8::each_hit_in`] take it); each
+    /// chunk's root node says whose it is ([`Node8::root_of`]).
+    ///
+    /// `parts[c]` is chunk `c`'s tree and its triangle count; [`FlatLayout`] says where
+    /// everything goes. `None` where the parts do not fit one tree (too many blocks or nodes
+    /// for a reference, a triangle id beyond its chunk's count, or deeper than the walk's
+    /// stack). Preparation builds the same tree straight into its memory instead
+    /// ([`FlatLayout::write_chunk`]), without the chunks' own forms.
+    pub fn flatten(top: &Bvh8, parts: &[(&Bvh8, u32)]) -> Option<Flattened> {
+        let counts: Vec<(usize, usize)> = parts
+            .iter()
+            .map(|(f, _)| (f.nodes.len(), f.leaves.len()))
+            .collect();
+        let layout = FlatLayout::new(top, &counts)?;
+        let mut nodes = vec![Node8::EMPTY; layout.nodes];
+        let mut leaves = vec![<Tri4 as bytemuck::Zeroable>::zeroed(); layout.leaves];
+        let (heads, mut bodies) = nodes.split_at_mut(layout.heads.len());
+        let mut rest_leaves = &mut leaves[..];
+        let mut roots = Vec::new();
+        for (c, (form, tris)) in parts.iter().enumerate() {
+            let (body, tail) = std::mem::take(&mut bodies).split_at_mut(layout.body_len(c));
+            bodies = tail;
+            let (blocks, tail) = std::mem::take(&mut rest_leaves).split_at_mut(counts[c].1);
+            rest_leaves = tail;
+            roots.push(layout.write_chunk(c, form, *tris, body, blocks)?);
+        }
+        layout.write_heads(top, &roots, heads);
+        let flat = Bvh8 {
+            nodes: nodes.into(),
+            leaves: leaves.into(),
+            // Checked chunk by chunk by `write_chunk`.
+            tris: u32::MAX,
+        };
+        flat.validate().ok()?;
+        Some(Flattened {
+            form: flat,
+            block_chunk: layout.block_chunk(),
+        })
     }
 
     /// This tree as words, for a block that [`Bvh8::in_block`] reads in place: a header,
@@ -728,8 +1029,9 @@ impl Stack {
 }
 
 /// Walks `nodes` from the root and calls `leaf(index, &mut tmax)` for every leaf whose box
-/// the ray enters within [0, tmax]. `leaf` may shorten `tmax`, which prunes what is left,
-/// or stop the walk. With `NEAREST_FIRST`, children are visited in order of entry distance
+/// the ray enters within [0, tmax], and `node_seen(node)` for every node it tests (a no-op
+/// but where chunks entered are recorded, see [`Node8::root_of`]). `leaf` may shorten
+/// `tmax`, which prunes what is left, or stop the walk. With `NEAREST_FIRST`, children are visited in order of entry distance
 /// and those entered beyond `tmax` are skipped (closest-hit queries); without, in slot order
 /// (any-hit queries, where order matters little and sorting costs).
 #[inline(always)]
@@ -738,6 +1040,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
     q: &RayQuery,
     tmax: &mut f32,
     leaf_lines: impl Fn(u32),
+    node_seen: impl Fn(&Node8),
     mut leaf: impl FnMut(u32, &mut f32) -> Visit,
 ) {
     if nodes.is_empty() || !q.is_finite() {
@@ -751,6 +1054,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
             let Some(node) = nodes.get(cur as usize) else {
                 return;
             };
+            node_seen(node);
             let (mask, tnear) = test_node(q, node, limit);
             if mask != 0 {
                 let a = (mask.trailing_zeros() & 7) as usize;
@@ -1130,6 +1434,8 @@ impl Bvh8 {
         if let [b] = &self.leaves[..] {
             return q.is_finite() && closest_in_leaf(q, b, self.tris, chunk, best, &mut accept);
         }
+        // The walk of `closest_in` with one chunk, written out: through `closest_in`, the
+        // queries of a render node's cache took about 1% more instructions.
         let mut found = false;
         let mut tmax = best.t;
         walk::<true>(
@@ -1137,10 +1443,50 @@ impl Bvh8 {
             q,
             &mut tmax,
             |l| self.prefetch_leaf(l),
+            |_| {},
+            |leaf, tmax| {
+                if let Some(b) = self.leaf(leaf) {
+                    let mut hit = closest_in_leaf(q, &b[0], self.tris, chunk, best, &mut accept);
+                    if let [_, second] = b {
+                        hit |= closest_in_leaf(q, second, self.tris, chunk, best, &mut accept);
+                    }
+                    if hit {
+                        *tmax = best.t;
+                        found = true;
+                    }
+                }
+                Visit::Continue
+            },
+        );
+        found
+    }
+
+    /// [`Bvh8::closest`] for a tree whose blocks belong to different chunks
+    /// ([`Bvh8::flatten`]): `chunk_of(block)` says whose, and `accept` is asked with it;
+    /// `node_seen` is told every node tested ([`walk`]).
+    #[inline(always)]
+    pub fn closest_in<C: Fn(usize) -> u32, A: FnMut(u32, u32, &TriHit) -> bool>(
+        &self,
+        q: &RayQuery,
+        chunk_of: C,
+        node_seen: impl Fn(&Node8),
+        best: &mut Closest,
+        mut accept: A,
+    ) -> bool {
+        let mut found = false;
+        let mut tmax = best.t;
+        walk::<true>(
+            &self.nodes,
+            q,
+            &mut tmax,
+            |l| self.prefetch_leaf(l),
+            node_seen,
             |leaf, tmax| {
                 // Written out for the two counts: a loop over the blocks measured no faster
                 // and leaned slower (0.96 to 1.03 of this, `bench/rays_ab.py`).
                 if let Some(b) = self.leaf(leaf) {
+                    let chunk = chunk_of(leaf_span(leaf).start);
+                    let mut accept = |tri, hit: &TriHit| accept(chunk, tri, hit);
                     let mut hit = closest_in_leaf(q, &b[0], self.tris, chunk, best, &mut accept);
                     if let [_, second] = b {
                         hit |= closest_in_leaf(q, second, self.tris, chunk, best, &mut accept);
@@ -1167,16 +1513,54 @@ impl Bvh8 {
             }
             return;
         }
+        // The walk of `each_hit_in` with one chunk, written out as `closest`'s is.
         let mut t = tmax;
         walk::<false>(
             &self.nodes,
             q,
             &mut t,
             |l| self.prefetch_leaf(l),
+            |_| {},
             |leaf, _| {
                 let Some(b) = self.leaf(leaf) else {
                     return Visit::Continue;
                 };
+                if hits_in_leaf(q, &b[0], self.tris, tmax, &mut f) == Visit::Stop {
+                    return Visit::Stop;
+                }
+                match b {
+                    [_, second] => hits_in_leaf(q, second, self.tris, tmax, &mut f),
+                    _ => Visit::Continue,
+                }
+            },
+        );
+    }
+
+    /// [`Bvh8::each_hit`] for a tree whose blocks belong to different chunks
+    /// ([`Bvh8::flatten`]): `chunk_of(block)` says whose, and `f` is told it; `node_seen`
+    /// is told every node tested ([`walk`]).
+    #[inline(always)]
+    pub fn each_hit_in<C: Fn(usize) -> u32, F: FnMut(u32, u32, TriHit) -> Visit>(
+        &self,
+        q: &RayQuery,
+        tmax: f32,
+        chunk_of: C,
+        node_seen: impl Fn(&Node8),
+        mut f: F,
+    ) {
+        let mut t = tmax;
+        walk::<false>(
+            &self.nodes,
+            q,
+            &mut t,
+            |l| self.prefetch_leaf(l),
+            node_seen,
+            |leaf, _| {
+                let Some(b) = self.leaf(leaf) else {
+                    return Visit::Continue;
+                };
+                let chunk = chunk_of(leaf_span(leaf).start);
+                let mut f = |tri, hit| f(chunk, tri, hit);
                 if hits_in_leaf(q, &b[0], self.tris, tmax, &mut f) == Visit::Stop {
                     return Visit::Stop;
                 }
@@ -1357,6 +1741,54 @@ mod tests {
             .collect();
         chunks.sort();
         assert_eq!(chunks, (0..300).collect::<Vec<u32>>());
+    }
+
+    /// A chunk of several levels and a chunk of one block, under a top-level tree, made one
+    /// tree: the layout the walk expects, every block once and with its chunk, the first
+    /// chunk's root among the first nodes (the second has no tree to enter); a part naming a
+    /// triangle beyond its chunk's count is refused.
+    #[test]
+    fn two_levels_flatten_into_one_tree_or_are_refused() {
+        let chunks = [whole_chunk(&grid(20, 0.0)), whole_chunk(&grid(1, 2.0))];
+        let boxes: Vec<([f32; 3], [f32; 3])> = chunks
+            .iter()
+            .map(|c| (c.bounds().min.to_array(), c.bounds().max.to_array()))
+            .collect();
+        let aabbs: Vec<obvhs::aabb::Aabb> = chunks.iter().map(|c| c.bounds()).collect();
+        let wide = crate::bvh::Builder::default().build(&aabbs, 1);
+        let top = Bvh8::for_chunks(&wide.nodes, &wide.order, &boxes);
+        let parts: Vec<(&Bvh8, u32)> = chunks.iter().map(|c| (c.accel(), c.tri_count())).collect();
+        let (a, b) = (parts[0].0, parts[1].0);
+        assert!(a.leaves.len() > 8 && b.leaves.len() == 1);
+
+        let flat = Bvh8::flatten(&top, &parts).unwrap();
+        flat.form.validate().unwrap();
+        assert_eq!(flat.form.nodes.len(), top.nodes.len() + a.nodes.len());
+        assert_eq!(flat.form.leaves.len(), a.leaves.len() + 1);
+        let mut want = vec![0; a.leaves.len()];
+        want.push(1);
+        assert_eq!(flat.block_chunk, want);
+        let roots: Vec<u32> = flat
+            .form
+            .nodes
+            .iter()
+            .map(|n| n.root_of)
+            .filter(|&r| r != 0)
+            .collect();
+        assert_eq!(roots, [1], "chunk 0's root, once; chunk 1 has none");
+        let mut blocks: Vec<usize> = flat
+            .form
+            .nodes
+            .iter()
+            .flat_map(|n| n.child)
+            .filter(|c| c & LEAF != 0)
+            .flat_map(|c| leaf_span(c & !LEAF))
+            .collect();
+        blocks.sort();
+        assert_eq!(blocks, (0..flat.form.leaves.len()).collect::<Vec<_>>());
+
+        let short = [(a, chunks[0].tri_count() - 1), parts[1]];
+        assert!(Bvh8::flatten(&top, &short).is_none());
     }
 
     /// One chunk of every triangle of `m`.

@@ -266,6 +266,17 @@ impl Chunk {
         self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
     }
 
+    /// This chunk's walking form, built apart (for [`crate::accel::FlatLayout`]).
+    pub(crate) fn walking_form(&self) -> Bvh8 {
+        Bvh8::for_chunk(self.nodes(), self.tri_positions())
+    }
+
+    /// The nodes and blocks of this chunk's walking form, from its tree's shape, without
+    /// building it.
+    pub(crate) fn walk_counts(&self) -> (usize, usize) {
+        (self.nodes().len(), Bvh8::leaf_count(self.nodes()))
+    }
+
     /// How many words this chunk's walking form takes as [`Bvh8::to_words`] writes it, from
     /// its tree's shape, without building it.
     pub(crate) fn walk_words_len(&self) -> usize {
@@ -303,6 +314,12 @@ impl Chunk {
         &self.accel
     }
 
+    /// Drops the walking form, for data whose queries walk every chunk's tree as one
+    /// ([`crate::source::MemoryData::flatten`]): the chunk's tree is then empty.
+    pub fn drop_walk(&mut self) {
+        self.accel = Bvh8::default();
+    }
+
     /// Bytes of a chunk as received (any alignment): copied once into aligned words.
     pub fn from_bytes(bytes: &[u8]) -> Result<Chunk, ChunkError> {
         if !bytes.len().is_multiple_of(4) {
@@ -330,7 +347,15 @@ impl Chunk {
     /// Bytes this chunk takes once it can be walked: its words and its walking form, wherever
     /// they lie (a cache counts a chunk walked in a card's shared memory as one it copied).
     pub fn memory_bytes(&self) -> usize {
-        self.byte_len() + self.accel.byte_len()
+        // A chunk whose tree was built into a flat tree (`scene::prepare_flat`) has no form of
+        // its own: it counts the one it would have, so the header says the same either way.
+        let form = if self.accel.nodes.is_empty() && self.accel.leaves.is_empty() {
+            let (nodes, blocks) = self.walk_counts();
+            nodes * size_of::<crate::accel::Node8>() + blocks * size_of::<crate::accel::Tri4>()
+        } else {
+            self.accel.byte_len()
+        };
+        self.byte_len() + form
     }
 
     // The accessors below are read on every hit; out of line, each call redid bytemuck's

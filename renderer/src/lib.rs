@@ -31,5 +31,7 @@ pub mod triangle;
 pub use camera::{Camera, Projection};
 pub use integrator::IntegratorKind;
 pub use render::{Image, Rect, RenderSettings};
-pub use scene::{MakeBlock, PrepareOptions, SceneDesc, SceneHeader, prepare, prepare_with};
+pub use scene::{
+    MakeBlock, PrepareOptions, SceneDesc, SceneHeader, prepare, prepare_flat, prepare_with,
+};
 pub use source::{DataError, MemoryData, SceneData};

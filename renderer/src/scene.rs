@@ -13,14 +13,14 @@ use obvhs::aabb::Aabb;
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    accel::{Bvh8, WalkPlace},
+    accel::{Bvh8, FlatLayout, Node8, WalkPlace},
     bvh,
     camera::Camera,
     chunk::{self, Chunk, MeshData},
     light::{Environment, Light, LightDistribution},
     material::Material,
     region::{self, Block, BlockMut, Region},
-    source::MemoryData,
+    source::{FlatTree, MemoryData},
     texture::{self, Filter, TextureInfo, Wrap},
 };
 
@@ -595,6 +595,85 @@ fn walks_in_block(chunks: &mut [Chunk], make: MakeBlock<'_>, threads: usize) {
     }
 }
 
+/// Builds the flat tree of `data`'s chunks (which have no walking forms) and `scene`'s
+/// top-level tree straight into one block from `make`, each chunk's part on one of `threads`
+/// threads (see [`FlatLayout`]); in the heap where `make` gives a block too small. False,
+/// the chunks left without forms, where the trees do not fit one tree.
+fn flat_in_block(
+    data: &mut MemoryData,
+    scene: &SceneHeader,
+    make: MakeBlock<'_>,
+    threads: usize,
+) -> bool {
+    let counts: Vec<(usize, usize)> = data.chunks.iter().map(|c| c.walk_counts()).collect();
+    let top = scene.tlas.accel();
+    let Some(layout) = FlatLayout::new(top, &counts) else {
+        return false;
+    };
+    let words = layout.words_len();
+    let mut block = make(words);
+    let out = block.words_mut();
+    if out.len() < words || !(out.as_ptr() as usize).is_multiple_of(64) {
+        // Too small to be worth a block: the chunks' forms in the heap, made one tree there.
+        for c in &mut data.chunks {
+            c.transcode();
+        }
+        if data.flatten(scene) {
+            return true;
+        }
+        for c in &mut data.chunks {
+            c.drop_walk();
+        }
+        return false;
+    }
+    let Some((heads, parts)) = layout.cut(&mut out[..words]) else {
+        return false;
+    };
+    let (layout, chunks) = (&layout, &data.chunks);
+    let mut jobs: Vec<_> = parts.into_iter().enumerate().collect();
+    let per = jobs.len().div_ceil(threads.max(1)).max(1);
+    let roots: Option<Vec<(usize, Node8)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = jobs
+            .chunks_mut(per)
+            .map(|group| {
+                scope.spawn(move || {
+                    group
+                        .iter_mut()
+                        .map(|(c, (body, blocks))| {
+                            let chunk = &chunks[*c];
+                            let form = chunk.walking_form();
+                            layout
+                                .write_chunk(*c, &form, chunk.tri_count(), body, blocks)
+                                .map(|root| (*c, root))
+                        })
+                        .collect::<Option<Vec<_>>>()
+                })
+            })
+            .collect();
+        let mut all = Vec::with_capacity(chunks.len());
+        for h in handles {
+            // A panic in a builder thread is a bug here, not bad input: pass it on.
+            all.extend(h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))?);
+        }
+        Some(all)
+    });
+    let Some(roots) = roots else {
+        return false;
+    };
+    let mut root_nodes = vec![Node8::EMPTY; chunks.len()];
+    for (c, root) in roots {
+        root_nodes[c] = root;
+    }
+    layout.write_heads(top, &root_nodes, heads);
+    let block: Arc<dyn BlockMut> = Arc::from(block);
+    // A tree written here from trees that passed their checks passes the check again.
+    let Ok(form) = Bvh8::in_block(block, 0, words, u32::MAX) else {
+        return false;
+    };
+    data.flat = Some(FlatTree::new(form, layout.block_chunk(), scene));
+    true
+}
+
 /// The chunks of one piece of mesh `mesh_id`: one, or more where a tree came out too deep
 /// (coincident triangles) and the piece was halved, in the order of its triangles.
 fn piece_chunks(
@@ -654,11 +733,43 @@ pub fn prepare_with(
     opts: &PrepareOptions,
     walks: Option<MakeBlock<'_>>,
 ) -> (SceneHeader, MemoryData) {
+    prepare_as(desc, opts, walks.map_or(Walks::Heap, Walks::Block))
+}
+
+/// As [`prepare_with`], the chunks' trees then made one tree with the top-level tree
+/// ([`MemoryData::flatten`]) and built straight into one block from `make` (or in the heap,
+/// where `make` declines with an block too small): no chunk gets a walking form of its own,
+/// so the flat tree takes no more memory or time to build than the chunks' forms would.
+/// What one process walks. Where the trees do not fit one tree, as [`prepare_with`].
+pub fn prepare_flat(
+    desc: SceneDesc,
+    opts: &PrepareOptions,
+    make: MakeBlock<'_>,
+) -> (SceneHeader, MemoryData) {
+    prepare_as(desc, opts, Walks::Flat(make))
+}
+
+/// Where a preparation puts the walking forms.
+#[derive(Clone, Copy)]
+enum Walks<'a> {
+    /// Each chunk's in the heap.
+    Heap,
+    /// Each chunk's in one block.
+    Block(MakeBlock<'a>),
+    /// One flat tree in one block.
+    Flat(MakeBlock<'a>),
+}
+
+fn prepare_as(
+    desc: SceneDesc,
+    opts: &PrepareOptions,
+    walks: Walks<'_>,
+) -> (SceneHeader, MemoryData) {
     // Each thread keeps a vertex map as long as the largest mesh: eight bound that memory on
     // a large machine, where reading the file takes longer than building by then.
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
-    let mut chunks = build_chunks(&desc.meshes, opts, threads, walks.is_none());
-    if let Some(make) = walks {
+    let mut chunks = build_chunks(&desc.meshes, opts, threads, matches!(walks, Walks::Heap));
+    if let Walks::Block(make) = walks {
         walks_in_block(&mut chunks, make, threads);
     }
 
@@ -776,7 +887,11 @@ pub fn prepare_with(
     // One chunk a leaf: a ray tests each chunk's own box before it touches the chunk.
     let top = bvh::build(&boxes, 1);
 
-    let data = MemoryData { chunks, tiles };
+    let mut data = MemoryData {
+        chunks,
+        tiles,
+        flat: None,
+    };
     let mut scene = SceneHeader {
         cameras: desc.cameras,
         materials: desc.materials,
@@ -797,6 +912,11 @@ pub fn prepare_with(
         tile_count: data.tiles.len() as u32,
     };
     scene.tlas.build_accel(&scene.chunks);
+    if let Walks::Flat(make) = walks
+        && !flat_in_block(&mut data, &scene, make, threads)
+    {
+        walks_in_block(&mut data.chunks, make, threads);
+    }
     let radius = scene.radius();
     let weights: Vec<f64> = scene
         .lights
@@ -1002,6 +1122,32 @@ mod tests {
         let (_, own) = prepare_with(crate::demo::demo_scene(), &opts, Some(&short));
         assert_eq!(own.chunks, apart.chunks);
         assert!(own.chunks.iter().all(|c| !c.accel().nodes.is_shared()));
+    }
+
+    /// Prepared for one process, the scene is one tree built straight into one block (its
+    /// chunks without forms of their own), the tree `MemoryData::flatten` makes of the
+    /// chunks' forms; in the heap where the block offered is too small; and the header is
+    /// the same as a render node's.
+    #[test]
+    fn a_flat_tree_built_into_a_block_is_the_one_flattened_from_the_chunks() {
+        use crate::region::testing::Lines;
+        let opts = PrepareOptions {
+            chunk_triangles: 64,
+        };
+        let (header, mut apart) = crate::prepare(crate::demo::demo_scene(), &opts);
+        assert!(apart.flatten(&header));
+        let want = apart.flat.as_ref().unwrap();
+        let lines = |words: usize| -> Box<dyn BlockMut> { Box::new(Lines::new(words)) };
+        let short = |words: usize| -> Box<dyn BlockMut> { Box::new(Lines::new(words / 2)) };
+        for (make, shared) in [(&lines as MakeBlock<'_>, true), (&short, false)] {
+            let (h, data) = prepare_flat(crate::demo::demo_scene(), &opts, make);
+            assert_eq!(h, header);
+            let got = data.flat.as_ref().expect("a flat tree");
+            assert_eq!(got.form.nodes.is_shared(), shared);
+            assert_eq!(got.form, want.form);
+            assert!(data.chunks.iter().all(|c| c.accel().nodes.is_empty()));
+            assert_eq!(data.chunks, apart.chunks);
+        }
     }
 
     #[test]

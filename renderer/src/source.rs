@@ -7,7 +7,7 @@
 
 use std::{cell::Cell, ops::Deref};
 
-use crate::{chunk::Chunk, texture::Tile};
+use crate::{accel::Bvh8, chunk::Chunk, scene::SceneHeader, texture::Tile, trace::SurfaceKind};
 
 /// A chunk or tile could not be had.
 #[derive(Debug, Clone, thiserror::Error, PartialEq)]
@@ -77,6 +77,21 @@ pub trait SceneData {
 
     fn chunk(&self, id: u32) -> Result<Self::ChunkRef<'_>, DataError>;
     fn tile(&self, id: u32) -> Result<Self::TileRef<'_>, DataError>;
+
+    /// The whole scene's trees as one, where this data holds every chunk and made it.
+    #[inline]
+    fn flat(&self) -> Option<&FlatTree> {
+        None
+    }
+
+    /// Whether this data records the chunks rays enter ([`Touched`]): a query walking
+    /// [`SceneData::flat`] asks for no chunk it only walks through, so it tells
+    /// [`SceneData::entered`] instead.
+    const NOTES_ENTRIES: bool = false;
+
+    /// A query walking [`SceneData::flat`] entered chunk `id`.
+    #[inline]
+    fn entered(&self, _id: u32) {}
 }
 
 /// All shape and texture data in this process's memory.
@@ -84,9 +99,80 @@ pub trait SceneData {
 pub struct MemoryData {
     pub chunks: Vec<Chunk>,
     pub tiles: Vec<Tile>,
+    /// Every chunk's tree and the top-level tree as one, when made ([`MemoryData::flatten`]).
+    pub flat: Option<FlatTree>,
+}
+
+/// The top-level tree and every chunk's tree as one ([`Bvh8::flatten`]), for data that holds
+/// every chunk: a ray walks it as one tree, with no walk of its own per chunk it enters.
+#[derive(Clone, Debug)]
+pub struct FlatTree {
+    pub form: Bvh8,
+    /// The chunk of each of the tree's four-triangle blocks.
+    block_chunk: Vec<u32>,
+    /// How each chunk's surfaces take rays (from its material), looked up at every hit a
+    /// query finds, where the two-level walk looked it up at every chunk it entered.
+    kinds: Vec<SurfaceKind>,
+    /// Whether every chunk takes every hit (no culled back faces, no alpha test): queries
+    /// then need not look at a hit's chunk before they take it.
+    pub all_solid: bool,
+}
+
+impl FlatTree {
+    /// The flat tree `form` of `scene`'s chunks, whose blocks belong to `block_chunk`.
+    pub(crate) fn new(form: Bvh8, block_chunk: Vec<u32>, scene: &SceneHeader) -> FlatTree {
+        let kinds: Vec<SurfaceKind> = (0..scene.chunks.len() as u32)
+            .map(|c| crate::trace::surface_kind(scene, c))
+            .collect();
+        FlatTree {
+            form,
+            block_chunk,
+            all_solid: kinds.iter().all(|&k| k == SurfaceKind::Solid),
+            kinds,
+        }
+    }
+
+    /// The chunk of block `block` of [`FlatTree::form`].
+    #[inline(always)]
+    pub fn chunk_of(&self, block: usize) -> u32 {
+        self.block_chunk.get(block).copied().unwrap_or(u32::MAX)
+    }
+
+    /// How chunk `c`'s surfaces take rays.
+    #[inline(always)]
+    pub(crate) fn kind(&self, c: u32) -> SurfaceKind {
+        self.kinds
+            .get(c as usize)
+            .copied()
+            .unwrap_or(SurfaceKind::Solid)
+    }
 }
 
 impl MemoryData {
+    /// Makes the chunks' trees one with the top-level tree of `scene` ([`FlatTree`]), which
+    /// every query then walks instead: each chunk's own walking form is dropped, so the data
+    /// takes no more memory than before. Where the trees do not fit one tree (see
+    /// [`Bvh8::flatten`]) nothing changes and false is returned. (Preparation for one
+    /// process builds the same tree straight into its memory: [`crate::prepare_flat`].)
+    ///
+    /// Data wrapping this data must pass [`SceneData::flat`] on: a query that found no flat
+    /// tree would walk chunks that have no tree left.
+    pub fn flatten(&mut self, scene: &SceneHeader) -> bool {
+        let parts: Vec<_> = self
+            .chunks
+            .iter()
+            .map(|c| (c.accel(), c.tri_count()))
+            .collect();
+        let Some(flat) = Bvh8::flatten(scene.tlas.accel(), &parts) else {
+            return false;
+        };
+        self.flat = Some(FlatTree::new(flat.form, flat.block_chunk, scene));
+        for c in &mut self.chunks {
+            c.drop_walk();
+        }
+        true
+    }
+
     /// Bytes of all chunks: the scene's total shape data, the base of cache percentages.
     pub fn shape_bytes(&self) -> u64 {
         self.chunks.iter().map(|c| c.byte_len() as u64).sum()
@@ -109,6 +195,11 @@ impl SceneData for MemoryData {
     #[inline]
     fn tile(&self, id: u32) -> Result<&Tile, DataError> {
         self.tiles.get(id as usize).ok_or(DataError::NoTile(id))
+    }
+
+    #[inline]
+    fn flat(&self) -> Option<&FlatTree> {
+        self.flat.as_ref()
     }
 }
 
@@ -204,6 +295,18 @@ impl<D: SceneData, const DEFERS: bool> SceneData for Noting<'_, D, DEFERS> {
             "deferred"
         );
         chunk
+    }
+
+    #[inline(always)]
+    fn flat(&self) -> Option<&FlatTree> {
+        self.data.flat()
+    }
+
+    const NOTES_ENTRIES: bool = true;
+
+    #[inline(always)]
+    fn entered(&self, id: u32) {
+        Touched::note(&self.touched.chunks, id);
     }
 
     #[inline(always)]

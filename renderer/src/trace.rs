@@ -1,12 +1,15 @@
 //! Tracing rays through the two-level BVH: the top-level tree over chunk bounds, then the
-//! tree inside each chunk the ray reaches, fetching chunks through [`SceneData`].
+//! tree inside each chunk the ray reaches, fetching chunks through [`SceneData`]. Data that
+//! holds every chunk and made the two levels one tree ([`SceneData::flat`]) is walked as
+//! that one tree: no walk of its own, no lookup of the chunk and its material, for every
+//! chunk a ray enters.
 
 use std::cell::Cell;
 
 use glam::Vec3;
 
 use crate::{
-    accel::{self, Closest},
+    accel::{self, Closest, Node8},
     bvh::Visit,
     chunk::Chunk,
     material::{self, AlphaMode},
@@ -14,7 +17,7 @@ use crate::{
     sampler::{SampleKey, Sampler},
     scene::SceneHeader,
     simd::AlignedFrame,
-    source::{DataError, Item, SceneData},
+    source::{DataError, FlatTree, Item, SceneData},
     triangle::TriHit,
 };
 
@@ -69,13 +72,34 @@ impl AlphaKey {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum SurfaceKind {
+pub(crate) enum SurfaceKind {
     /// Every hit counts.
     Solid,
     /// Hits on back faces do not count.
     Culled,
     /// Hits are alpha-tested (and back faces culled when `cull`).
     Alpha { cull: bool },
+}
+
+/// How the surfaces of a chunk take rays (from the header, which is at hand, and whose
+/// material indices were checked; a chunk must agree with it, see `ChunkRules`).
+#[inline(always)]
+pub(crate) fn surface_kind(scene: &SceneHeader, chunk_id: u32) -> SurfaceKind {
+    let Some(m) = scene
+        .chunks
+        .get(chunk_id as usize)
+        .and_then(|c| scene.materials.get(c.material as usize))
+    else {
+        return SurfaceKind::Solid;
+    };
+    // glTF: a single-sided material is invisible from behind (back faces are culled),
+    // except where light must cross it, as into and out of a transmissive volume.
+    let cull = !m.double_sided && m.transmission <= 0.0;
+    match (m.alpha_mode, cull) {
+        (AlphaMode::Opaque, false) => SurfaceKind::Solid,
+        (AlphaMode::Opaque, true) => SurfaceKind::Culled,
+        (_, cull) => SurfaceKind::Alpha { cull },
+    }
 }
 
 pub struct Tracer<'a, D: SceneData> {
@@ -153,25 +177,9 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         }
     }
 
-    /// How the surfaces of a chunk take rays (from the header, which is at hand, and whose
-    /// material indices were checked; a chunk must agree with it, see `ChunkRules`).
+    #[inline(always)]
     fn surface_kind(&self, chunk_id: u32) -> SurfaceKind {
-        let Some(m) = self
-            .scene
-            .chunks
-            .get(chunk_id as usize)
-            .and_then(|c| self.scene.materials.get(c.material as usize))
-        else {
-            return SurfaceKind::Solid;
-        };
-        // glTF: a single-sided material is invisible from behind (back faces are culled),
-        // except where light must cross it, as into and out of a transmissive volume.
-        let cull = !m.double_sided && m.transmission <= 0.0;
-        match (m.alpha_mode, cull) {
-            (AlphaMode::Opaque, false) => SurfaceKind::Solid,
-            (AlphaMode::Opaque, true) => SurfaceKind::Culled,
-            (_, cull) => SurfaceKind::Alpha { cull },
-        }
+        surface_kind(self.scene, chunk_id)
     }
 
     /// Whether the ray passes through triangle `tri` of `chunk` at `hit`: a culled back face,
@@ -225,6 +233,9 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         ray: &Ray,
         key: AlphaKey,
     ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
+        if let Some(flat) = self.data.flat() {
+            return self.closest_in_flat(flat, ray, key);
+        }
         // The query's 8-lane constants live on this frame (see `AlignedFrame`).
         let _frame = AlignedFrame::new();
         let q = RayQuery::new(ray);
@@ -293,6 +304,84 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         }))
     }
 
+    /// [`Tracer::closest`] through the whole scene's trees as one (data that holds every
+    /// chunk, and so never defers).
+    fn closest_in_flat(
+        &self,
+        flat: &FlatTree,
+        ray: &Ray,
+        key: AlphaKey,
+    ) -> Result<Option<Hit<D::ChunkRef<'a>>>, DataError> {
+        let _frame = AlignedFrame::new();
+        let q = RayQuery::new(ray);
+        let mut best = Closest::new(ray.tmax);
+        let mut error = None;
+        let chunk_of = |block| self.chunk_of(flat, block);
+        let node_seen = |node: &Node8| self.node_seen(node);
+        if flat.all_solid {
+            flat.form
+                .closest_in(&q, chunk_of, node_seen, &mut best, |_, _, _| true);
+        } else {
+            flat.form
+                .closest_in(&q, chunk_of, node_seen, &mut best, |c, tri, hit| {
+                    self.takes(flat, c, &q, tri, hit, key).unwrap_or_else(|e| {
+                        error = Some(e);
+                        false
+                    })
+                });
+        }
+        if let Some(e) = error {
+            return Err(e);
+        }
+        let Some(tri_hit) = best.hit else {
+            return Ok(None);
+        };
+        Ok(Some(Hit {
+            chunk: self.data.chunk(best.chunk)?,
+            tri: best.tri,
+            tri_hit,
+        }))
+    }
+
+    /// The chunk of block `block` of the flat tree, noted as entered where the data notes
+    /// entries (the two-level walk asks the data for every chunk it enters; the flat walk
+    /// asks only for the chunk of its hit).
+    #[inline(always)]
+    fn chunk_of(&self, flat: &FlatTree, block: usize) -> u32 {
+        let c = flat.chunk_of(block);
+        if D::NOTES_ENTRIES {
+            self.data.entered(c);
+        }
+        c
+    }
+
+    /// Notes the chunk whose root `node` of the flat tree is, where the data notes entries.
+    #[inline(always)]
+    fn node_seen(&self, node: &Node8) {
+        if D::NOTES_ENTRIES && node.root_of != 0 {
+            self.data.entered(node.root_of - 1);
+        }
+    }
+
+    /// Whether triangle `tri` of chunk `c` takes the ray at `hit` (see
+    /// [`Tracer::passes_through`]).
+    fn takes(
+        &self,
+        flat: &FlatTree,
+        c: u32,
+        q: &RayQuery,
+        tri: u32,
+        hit: &TriHit,
+        key: AlphaKey,
+    ) -> Result<bool, DataError> {
+        let kind = flat.kind(c);
+        if kind == SurfaceKind::Solid {
+            return Ok(true);
+        }
+        let chunk = self.data.chunk(c)?;
+        Ok(!self.passes_through(&chunk, kind, q, tri, hit, key)?)
+    }
+
     /// One walk of the top-level tree for [`Tracer::closest`], within `tmax`: updates
     /// `best` and the chunk it lies in, skips chunks `searched` before, notes them as it
     /// searches and notes the first chunk that is missing; the error that stopped it.
@@ -313,6 +402,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             &self.scene.tlas.accel().nodes,
             q,
             tmax,
+            |_| {},
             |_| {},
             // Inlined into the top-level walk: out of line (the compiler's choice), every
             // chunk a ray enters paid a call with six saved registers and a fresh frame; in
@@ -424,6 +514,26 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         self.shadow_rays.set(self.shadow_rays.get() + 1);
         let _frame = AlignedFrame::new();
         let q = RayQuery::new(ray);
+        if let Some(flat) = self.data.flat() {
+            let mut blocked = Ok(false);
+            let chunk_of = |block| self.chunk_of(flat, block);
+            let node_seen = |node: &Node8| self.node_seen(node);
+            flat.form
+                .each_hit_in(&q, ray.tmax, chunk_of, node_seen, |c, tri, hit| {
+                    if flat.all_solid {
+                        blocked = Ok(true);
+                        return Visit::Stop;
+                    }
+                    match self.takes(flat, c, &q, tri, &hit, key) {
+                        Ok(false) => Visit::Continue,
+                        taken => {
+                            blocked = taken;
+                            Visit::Stop
+                        }
+                    }
+                });
+            return blocked;
+        }
         let mut searched = self.memo_of(ray, |m| &mut m.occluded).unwrap_or_default();
         let mut tmax = ray.tmax;
         let mut blocked = false;
@@ -433,6 +543,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             &self.scene.tlas.accel().nodes,
             &q,
             &mut tmax,
+            |_| {},
             |_| {},
             |chunk_id, tmax| {
                 let chunk = match self.reach(chunk_id, &searched, &missing, &mut error) {
