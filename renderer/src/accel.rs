@@ -239,6 +239,10 @@ impl FlatLayout {
                 .get((c & !LEAF) as usize)
                 .is_some_and(|&(n, l)| l > 1 && n > 0)
         };
+        // Blocks with no node to hold them: not a chunk's tree (each would be lost).
+        if counts.iter().any(|&(n, l)| l > 1 && n == 0) {
+            return None;
+        }
         let mut leaf_base = Vec::with_capacity(counts.len());
         let mut leaves = 0usize;
         for &(_, l) in counts {
@@ -298,11 +302,6 @@ impl FlatLayout {
 
     fn has_tree(&self, c: usize) -> bool {
         self.counts.get(c).is_some_and(|&(n, l)| l > 1 && n > 0)
-    }
-
-    /// The top-level nodes and chunk roots, which come first.
-    pub fn heads(&self) -> usize {
-        self.heads.len()
     }
 
     /// How many of chunk `c`'s nodes go to its body (all but its root, where it has a tree).
@@ -413,7 +412,7 @@ impl FlatLayout {
     }
 
     /// Writes the top-level nodes and the chunks' roots (`roots[c]` from
-    /// [`FlatLayout::write_chunk`]) into `heads` ([`FlatLayout::heads`] of them).
+    /// [`FlatLayout::write_chunk`]) into `heads`, the first part of [`FlatLayout::cut`].
     pub fn write_heads(&self, top: &Bvh8, roots: &[Node8], heads: &mut [Node8]) {
         for ((h, &(first, count)), out) in self.heads.iter().zip(&self.children).zip(heads) {
             *out = match *h {
@@ -1789,6 +1788,8 @@ mod tests {
 
         let short = [(a, chunks[0].tri_count() - 1), parts[1]];
         assert!(Bvh8::flatten(&top, &short).is_none());
+        // Blocks no node holds would be lost: refused.
+        assert!(FlatLayout::new(&top, &[(0, 3), (1, 1)]).is_none());
     }
 
     /// One chunk of every triangle of `m`.
