@@ -515,9 +515,24 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         let _frame = AlignedFrame::new();
         let q = RayQuery::new(ray);
         if let Some(flat) = self.data.flat() {
+            let node_seen = |node: &Node8| self.node_seen(node);
+            if flat.all_solid && !D::NOTES_ENTRIES {
+                // Any hit blocks, whatever its chunk: no chunk to look up at each leaf.
+                let mut blocked = false;
+                flat.form.each_hit_in(
+                    &q,
+                    ray.tmax,
+                    |_| 0,
+                    node_seen,
+                    |_, _, _| {
+                        blocked = true;
+                        Visit::Stop
+                    },
+                );
+                return Ok(blocked);
+            }
             let mut blocked = Ok(false);
             let chunk_of = |block| self.chunk_of(flat, block);
-            let node_seen = |node: &Node8| self.node_seen(node);
             flat.form
                 .each_hit_in(&q, ray.tmax, chunk_of, node_seen, |c, tri, hit| {
                     if flat.all_solid {
