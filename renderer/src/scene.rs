@@ -738,7 +738,7 @@ pub fn prepare_with(
 
 /// As [`prepare_with`], the chunks' trees then made one tree with the top-level tree
 /// ([`MemoryData::flatten`]) and built straight into one block from `make` (or in the heap,
-/// where `make` declines with an block too small): no chunk gets a walking form of its own,
+/// where `make` declines with a block too small): no chunk gets a walking form of its own,
 /// so the flat tree takes no more memory or time to build than the chunks' forms would.
 /// What one process walks. Where the trees do not fit one tree, as [`prepare_with`].
 pub fn prepare_flat(
