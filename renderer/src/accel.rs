@@ -224,6 +224,12 @@ pub struct FlatLayout {
     pub leaves: usize,
 }
 
+/// Whether chunk `c` of these (nodes, blocks) counts has a tree to walk: a chunk of one
+/// block is walked as that block.
+fn has_tree(counts: &[(usize, usize)], c: usize) -> bool {
+    counts.get(c).is_some_and(|&(n, l)| l > 1 && n > 0)
+}
+
 #[derive(Clone, Copy)]
 enum Head {
     Top(usize),
@@ -234,11 +240,7 @@ impl FlatLayout {
     /// The layout for `top` over chunks of `counts[c]` = (nodes, blocks); `None` where it
     /// does not fit references.
     pub fn new(top: &Bvh8, counts: &[(usize, usize)]) -> Option<FlatLayout> {
-        let has_tree = |c: u32| {
-            counts
-                .get((c & !LEAF) as usize)
-                .is_some_and(|&(n, l)| l > 1 && n > 0)
-        };
+        let has_tree = |c: u32| has_tree(counts, (c & !LEAF) as usize);
         // Blocks with no node to hold them: not a chunk's tree (each would be lost).
         if counts.iter().any(|&(n, l)| l > 1 && n == 0) {
             return None;
@@ -301,7 +303,7 @@ impl FlatLayout {
     }
 
     fn has_tree(&self, c: usize) -> bool {
-        self.counts.get(c).is_some_and(|&(n, l)| l > 1 && n > 0)
+        has_tree(&self.counts, c)
     }
 
     /// How many of chunk `c`'s nodes go to its body (all but its root, where it has a tree).
@@ -335,8 +337,18 @@ impl FlatLayout {
         let (node_words, leaf_words) = rest.split_at_mut(self.nodes * NODE_WORDS);
         let nodes: &mut [Node8] = bytemuck::try_cast_slice_mut(node_words).ok()?;
         let leaves: &mut [Tri4] = bytemuck::try_cast_slice_mut(leaf_words).ok()?;
+        Some(self.split(nodes, leaves))
+    }
+
+    /// The tree's `nodes` and `leaves` ([`FlatLayout::nodes`] and [`FlatLayout::leaves`]
+    /// long) cut into the head nodes and each chunk's body and blocks.
+    #[allow(clippy::type_complexity)]
+    fn split<'a>(
+        &self,
+        nodes: &'a mut [Node8],
+        mut leaves: &'a mut [Tri4],
+    ) -> (&'a mut [Node8], Vec<(&'a mut [Node8], &'a mut [Tri4])>) {
         let (heads, mut bodies) = nodes.split_at_mut(self.heads.len());
-        let mut leaves = leaves;
         let mut parts = Vec::with_capacity(self.counts.len());
         for c in 0..self.counts.len() {
             let (body, tail) = std::mem::take(&mut bodies).split_at_mut(self.body_len(c));
@@ -345,7 +357,7 @@ impl FlatLayout {
             leaves = tail;
             parts.push((body, blocks));
         }
-        Some((heads, parts))
+        (heads, parts)
     }
 
     /// The chunk of each block.
@@ -704,16 +716,15 @@ impl Bvh8 {
         let layout = FlatLayout::new(top, &counts)?;
         let mut nodes = vec![Node8::EMPTY; layout.nodes];
         let mut leaves = vec![<Tri4 as bytemuck::Zeroable>::zeroed(); layout.leaves];
-        let (heads, mut bodies) = nodes.split_at_mut(layout.heads.len());
-        let mut rest_leaves = &mut leaves[..];
-        let mut roots = Vec::new();
-        for (c, (form, tris)) in parts.iter().enumerate() {
-            let (body, tail) = std::mem::take(&mut bodies).split_at_mut(layout.body_len(c));
-            bodies = tail;
-            let (blocks, tail) = std::mem::take(&mut rest_leaves).split_at_mut(counts[c].1);
-            rest_leaves = tail;
-            roots.push(layout.write_chunk(c, form, *tris, body, blocks)?);
-        }
+        let (heads, bodies) = layout.split(&mut nodes, &mut leaves);
+        let roots = parts
+            .iter()
+            .zip(bodies)
+            .enumerate()
+            .map(|(c, ((form, tris), (body, blocks)))| {
+                layout.write_chunk(c, form, *tris, body, blocks)
+            })
+            .collect::<Option<Vec<_>>>()?;
         layout.write_heads(top, &roots, heads);
         let flat = Bvh8 {
             nodes: nodes.into(),
@@ -1433,31 +1444,7 @@ impl Bvh8 {
         if let [b] = &self.leaves[..] {
             return q.is_finite() && closest_in_leaf(q, b, self.tris, chunk, best, &mut accept);
         }
-        // The walk of `closest_in` with one chunk, written out: through `closest_in`, the
-        // queries of a render node's cache took about 1% more instructions.
-        let mut found = false;
-        let mut tmax = best.t;
-        walk::<true>(
-            &self.nodes,
-            q,
-            &mut tmax,
-            |l| self.prefetch_leaf(l),
-            |_| {},
-            |leaf, tmax| {
-                if let Some(b) = self.leaf(leaf) {
-                    let mut hit = closest_in_leaf(q, &b[0], self.tris, chunk, best, &mut accept);
-                    if let [_, second] = b {
-                        hit |= closest_in_leaf(q, second, self.tris, chunk, best, &mut accept);
-                    }
-                    if hit {
-                        *tmax = best.t;
-                        found = true;
-                    }
-                }
-                Visit::Continue
-            },
-        );
-        found
+        self.closest_in(q, |_| chunk, |_| {}, best, |_, tri, hit| accept(tri, hit))
     }
 
     /// [`Bvh8::closest`] for a tree whose blocks belong to different chunks
@@ -1512,27 +1499,7 @@ impl Bvh8 {
             }
             return;
         }
-        // The walk of `each_hit_in` with one chunk, written out as `closest`'s is.
-        let mut t = tmax;
-        walk::<false>(
-            &self.nodes,
-            q,
-            &mut t,
-            |l| self.prefetch_leaf(l),
-            |_| {},
-            |leaf, _| {
-                let Some(b) = self.leaf(leaf) else {
-                    return Visit::Continue;
-                };
-                if hits_in_leaf(q, &b[0], self.tris, tmax, &mut f) == Visit::Stop {
-                    return Visit::Stop;
-                }
-                match b {
-                    [_, second] => hits_in_leaf(q, second, self.tris, tmax, &mut f),
-                    _ => Visit::Continue,
-                }
-            },
-        );
+        self.each_hit_in(q, tmax, |_| 0, |_| {}, |_, tri, hit| f(tri, hit));
     }
 
     /// [`Bvh8::each_hit`] for a tree whose blocks belong to different chunks

@@ -263,10 +263,10 @@ impl Chunk {
 
     /// Builds the walking form, in memory of the chunk's own.
     pub(crate) fn transcode(&mut self) {
-        self.accel = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+        self.accel = self.walking_form();
     }
 
-    /// This chunk's walking form, built apart (for [`crate::accel::FlatLayout`]).
+    /// This chunk's walking form, built in memory of its own.
     pub(crate) fn walking_form(&self) -> Bvh8 {
         Bvh8::for_chunk(self.nodes(), self.tri_positions())
     }
@@ -286,7 +286,7 @@ impl Chunk {
     /// Builds the walking form into `out` (as [`Bvh8::to_words`] writes it); false, with
     /// nothing written, if `out` is not its length.
     pub(crate) fn transcode_into(&self, out: &mut [u32]) -> bool {
-        let form = Bvh8::for_chunk(self.nodes(), self.tri_positions());
+        let form = self.walking_form();
         if form.words_len() != out.len() {
             return false;
         }

@@ -177,11 +177,6 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         }
     }
 
-    #[inline(always)]
-    fn surface_kind(&self, chunk_id: u32) -> SurfaceKind {
-        surface_kind(self.scene, chunk_id)
-    }
-
     /// Whether the ray passes through triangle `tri` of `chunk` at `hit`: a culled back face,
     /// alpha MASK below the cutoff, or BLEND chosen transparent with probability 1 - alpha.
     fn passes_through(
@@ -413,7 +408,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
                     Ok(c) => c,
                     Err(visit) => return visit,
                 };
-                let kind = self.surface_kind(chunk_id);
+                let kind = surface_kind(self.scene, chunk_id);
                 let improved = if kind == SurfaceKind::Solid {
                     chunk.accel().closest(q, chunk_id, best, |_, _| true)
                 } else {
@@ -565,7 +560,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
                     Ok(c) => c,
                     Err(visit) => return visit,
                 };
-                let kind = self.surface_kind(chunk_id);
+                let kind = surface_kind(self.scene, chunk_id);
                 chunk.accel().each_hit(&q, *tmax, |tri, hit| {
                     if kind == SurfaceKind::Solid {
                         blocked = true;
