@@ -20,7 +20,7 @@ use obvhs::{
     BvhBuildParams,
     aabb::Aabb,
     bvh2::{Bvh2, reinsertion::ReinsertionOptimizer},
-    ploc::PlocBuilder,
+    ploc::{PlocBuilder, PlocSearchDistance},
 };
 
 /// Deepest tree accepted: the walk's stack is sized for it.
@@ -71,6 +71,7 @@ pub fn child(r: u32) -> Child {
 
 /// A built tree: nodes (root first, parents before children) and the input primitives in
 /// leaf order.
+#[derive(Default)]
 pub struct WideTree {
     pub nodes: Vec<WideNode>,
     pub order: Vec<u32>,
@@ -104,6 +105,11 @@ pub fn build(boxes: &[Aabb], max_leaf: u32) -> WideTree {
     Builder::default().build(boxes, max_leaf)
 }
 
+/// Builds the top-level tree over chunk boxes ([`Builder::build_top`]).
+pub fn build_top(boxes: &[Aabb]) -> WideTree {
+    Builder::default().build_top(boxes)
+}
+
 /// Builds trees one after another, reusing its buffers (a scene's chunks are built in a
 /// row, each a few thousand triangles, so allocation would otherwise cost a good part).
 #[derive(Default)]
@@ -118,32 +124,78 @@ impl Builder {
     /// A tree over `boxes` with at most `max_leaf` (1 to 8) primitives a leaf.
     pub fn build(&mut self, boxes: &[Aabb], max_leaf: u32) -> WideTree {
         if boxes.is_empty() {
-            return WideTree {
-                nodes: Vec::new(),
-                order: Vec::new(),
-            };
+            return WideTree::default();
         }
         // PLOC then reinsertion, lighter than obvhs's medium preset: measured with callgrind
         // on a 1M-triangle landscape, a search distance of 2 and a 1% reinsertion batch
         // build in 72% of the instructions and trace no worse (slightly better after the
         // 8-wide collapse). Leaves are chosen by the collapse, so obvhs keeps one primitive
         // a leaf and does not collapse.
-        let mut params = BvhBuildParams::medium_build();
-        params.ploc_search_distance = obvhs::ploc::PlocSearchDistance::VeryLow;
-        params.reinsertion_batch_ratio = 0.01;
+        self.binary_tree(boxes, PlocSearchDistance::VeryLow, 0.01);
+        self.collapser.collapse(&self.binary, 0, max_leaf)
+    }
+
+    /// The top-level tree over the boxes of a scene's chunks, one chunk a leaf. Nearly every
+    /// ray walks its upper levels, and it holds a few hundred to a few thousand boxes where
+    /// a chunk's tree holds thousands of triangles, so it gets a search that would cost a
+    /// chunk's tree several times its build: a binary tree from PLOC at each search distance
+    /// obvhs offers (one only above 4,096 chunks), every node offered for reinsertion, each
+    /// collapsed, and the one of least expected cost (the collapse's surface area heuristic)
+    /// kept; ties keep the first. Heuristic builds vary with the distance in no order (on
+    /// the 1M-triangle landscape of `bench/peers/embree.py`, 423 chunks, a distance of 14
+    /// gave the cheapest tree and 6 one of the dearest).
+    pub fn build_top(&mut self, boxes: &[Aabb]) -> WideTree {
+        if boxes.is_empty() {
+            return WideTree::default();
+        }
+        let distances = if boxes.len() <= TOP_SEARCH_ALL_BELOW {
+            &TOP_SEARCH_DISTANCES[..]
+        } else {
+            &TOP_SEARCH_DISTANCES[..1]
+        };
+        let mut best: Option<(f64, WideTree)> = None;
+        for &distance in distances {
+            self.binary_tree(boxes, distance, 1.0);
+            let tree = self.collapser.collapse(&self.binary, 0, 1);
+            let cost = self.collapser.cost[0][0];
+            if best.as_ref().is_none_or(|(c, _)| cost < *c) {
+                best = Some((cost, tree));
+            }
+        }
+        best.map(|(_, t)| t).unwrap_or_default()
+    }
+
+    /// PLOC at `distance` over `boxes`, one box a leaf, then a share `reinsert` of its
+    /// nodes offered for reinsertion, into `binary`.
+    fn binary_tree(&mut self, boxes: &[Aabb], distance: PlocSearchDistance, reinsert: f32) {
+        let params = BvhBuildParams::medium_build();
         self.ploc.build_with_bvh(
             &mut self.binary,
-            params.ploc_search_distance,
+            distance,
             boxes,
             (0..boxes.len() as u32).collect(),
             params.sort_precision,
             params.search_depth_threshold,
         );
-        self.reinsertion
-            .run(&mut self.binary, params.reinsertion_batch_ratio, None);
-        self.collapser.collapse(&self.binary, 0, max_leaf)
+        self.reinsertion.run(&mut self.binary, reinsert, None);
     }
 }
+
+/// PLOC search distances tried for the top-level tree ([`Builder::build_top`]), the one
+/// that gave the cheapest tree most often first (it alone is tried over many boxes).
+const TOP_SEARCH_DISTANCES: [PlocSearchDistance; 6] = [
+    PlocSearchDistance::Medium,
+    PlocSearchDistance::Minimum,
+    PlocSearchDistance::VeryLow,
+    PlocSearchDistance::Low,
+    PlocSearchDistance::High,
+    PlocSearchDistance::VeryHigh,
+];
+
+/// Above this many chunks, the top-level tree is built at one search distance: the search
+/// grows with the boxes, and so many chunks hold so few triangles each that the top level
+/// is most of the scene's tree.
+const TOP_SEARCH_ALL_BELOW: usize = 4_096;
 
 /// The nodes of the binary subtree at `root`, children before parents, into `post`.
 fn post_order(b: &Bvh2, root: usize, post: &mut Vec<usize>) {
@@ -535,6 +587,79 @@ mod tests {
                 }
             }
             assert!(covered.iter().all(|&c| c == 1), "{n} boxes");
+        }
+    }
+
+    /// The expected cost of a wide tree under the collapse's heuristic (per unit of the
+    /// root's area), and the box of node `i`.
+    fn wide_cost(t: &WideTree, boxes: &[Aabb], i: usize) -> (f64, Aabb) {
+        let mut cost = 0.0;
+        let mut bounds = Aabb::empty();
+        for &r in &t.nodes[i] {
+            match child(r) {
+                Child::Empty => {}
+                Child::Node(n) => {
+                    let (c, b) = wide_cost(t, boxes, n as usize);
+                    cost += c;
+                    bounds = bounds.union(&b);
+                }
+                Child::Leaf { first, count } => {
+                    let mut b = Aabb::empty();
+                    for p in &t.order[first as usize..(first + count) as usize] {
+                        b = b.union(&boxes[*p as usize]);
+                    }
+                    cost += half_area_f64(&b) * leaf_cost(count);
+                    bounds = bounds.union(&b);
+                }
+            }
+        }
+        (cost + half_area_f64(&bounds) * NODE_COST, bounds)
+    }
+
+    /// The top-level tree holds every chunk box in a leaf of its own, and the search for it
+    /// finds a cheaper tree than the chunks' builder makes over the same boxes (a grid, and
+    /// clusters of overlapping boxes of many sizes, as chunks of meshes of many sizes are).
+    #[test]
+    fn the_top_level_tree_holds_every_box_once_and_costs_no_more() {
+        let mut seed = 7u64;
+        let mut next = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let clusters: Vec<Aabb> = (0..400)
+            .map(|_| {
+                let c = Vec3A::new(next(), next(), next() * 0.2) * 100.0;
+                let size = Vec3A::new(next(), next(), next()) * (1.0 + 20.0 * next());
+                Aabb::new(c - size, c + size)
+            })
+            .collect();
+        for set in [boxes(1), boxes(7), boxes(300), clusters] {
+            let n = set.len();
+            let top = build_top(&set);
+            assert!(validate_tree(&top.nodes, n).is_ok(), "{n} boxes");
+            let mut seen = vec![0; n];
+            for node in &top.nodes {
+                for &r in node {
+                    if let Child::Leaf { first, count } = child(r) {
+                        assert_eq!(count, 1, "{n} boxes: one chunk a leaf");
+                        seen[top.order[first as usize] as usize] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&s| s == 1), "{n} boxes");
+            let (top_cost, _) = wide_cost(&top, &set, 0);
+            let (plain_cost, _) = wide_cost(&build(&set, 1), &set, 0);
+            // A few boxes leave no choice; over hundreds the search must find a cheaper tree.
+            if n < 100 {
+                assert_eq!(top_cost, plain_cost, "{n} boxes");
+            } else {
+                assert!(
+                    top_cost < plain_cost,
+                    "{n} boxes: {top_cost} >= {plain_cost}"
+                );
+            }
         }
     }
 

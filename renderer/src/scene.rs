@@ -885,7 +885,7 @@ fn prepare_as(
         .collect();
     let boxes: Vec<Aabb> = chunks.iter().map(|c| c.bounds()).collect();
     // One chunk a leaf: a ray tests each chunk's own box before it touches the chunk.
-    let top = bvh::build(&boxes, 1);
+    let top = bvh::build_top(&boxes);
 
     let mut data = MemoryData {
         chunks,
