@@ -181,8 +181,9 @@ impl Builder {
     }
 }
 
-/// PLOC search distances tried for the top-level tree ([`Builder::build_top`]), the one
-/// that gave the cheapest tree most often first (it alone is tried over many boxes).
+/// PLOC search distances tried for the top-level tree ([`Builder::build_top`]); `Medium`
+/// first, as it gave the cheapest tree on the million-triangle landscape and it alone is
+/// tried over many boxes.
 const TOP_SEARCH_DISTANCES: [PlocSearchDistance; 6] = [
     PlocSearchDistance::Medium,
     PlocSearchDistance::Minimum,
@@ -192,9 +193,9 @@ const TOP_SEARCH_DISTANCES: [PlocSearchDistance; 6] = [
     PlocSearchDistance::VeryHigh,
 ];
 
-/// Above this many chunks, the top-level tree is built at one search distance: the search
-/// grows with the boxes, and so many chunks hold so few triangles each that the top level
-/// is most of the scene's tree.
+/// Above this many chunks, the top-level tree is built at one search distance: the six
+/// builds grow with the boxes (at 3,768 chunks of the million-triangle landscape they added
+/// 22 ms, a tenth of its build).
 const TOP_SEARCH_ALL_BELOW: usize = 4_096;
 
 /// The nodes of the binary subtree at `root`, children before parents, into `post`.
@@ -590,8 +591,8 @@ mod tests {
         }
     }
 
-    /// The expected cost of a wide tree under the collapse's heuristic (per unit of the
-    /// root's area), and the box of node `i`.
+    /// The expected cost of the subtree at node `i` under the collapse's heuristic (areas
+    /// times costs, as the collapse sums them), and its box.
     fn wide_cost(t: &WideTree, boxes: &[Aabb], i: usize) -> (f64, Aabb) {
         let mut cost = 0.0;
         let mut bounds = Aabb::empty();
