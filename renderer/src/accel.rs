@@ -1548,21 +1548,7 @@ mod tests {
     };
     use glam::{Vec3, Vec3A};
 
-    /// A small deterministic generator (the tests need no statistical quality).
-    struct Lcg(u64);
-
-    impl Lcg {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 40) as f32 / (1u64 << 24) as f32
-        }
-        fn vec(&mut self, scale: f32) -> Vec3 {
-            Vec3::new(self.next(), self.next(), self.next()) * 2.0 * scale - scale
-        }
-    }
+    use crate::testing::Lcg;
 
     proptest::proptest! {
         /// Children to visit come out farthest first, every one of them once, for each

@@ -622,17 +622,11 @@ mod tests {
     /// clusters of overlapping boxes of many sizes, as chunks of meshes of many sizes are).
     #[test]
     fn the_top_level_tree_holds_every_box_once_and_costs_no_more() {
-        let mut seed = 7u64;
-        let mut next = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut r = crate::testing::Lcg(7);
         let clusters: Vec<Aabb> = (0..400)
             .map(|_| {
-                let c = Vec3A::new(next(), next(), next() * 0.2) * 100.0;
-                let size = Vec3A::new(next(), next(), next()) * (1.0 + 20.0 * next());
+                let c = Vec3A::new(r.next(), r.next(), r.next() * 0.2) * 100.0;
+                let size = Vec3A::new(r.next(), r.next(), r.next()) * (1.0 + 20.0 * r.next());
                 Aabb::new(c - size, c + size)
             })
             .collect();

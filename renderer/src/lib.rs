@@ -24,6 +24,8 @@ pub mod sampler;
 pub mod scene;
 pub mod simd;
 pub mod source;
+#[cfg(test)]
+mod testing;
 pub mod texture;
 pub mod trace;
 pub mod triangle;

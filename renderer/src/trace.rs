@@ -530,10 +530,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             let chunk_of = |block| self.chunk_of(flat, block);
             flat.form
                 .each_hit_in(&q, ray.tmax, chunk_of, node_seen, |c, tri, hit| {
-                    if flat.all_solid {
-                        blocked = Ok(true);
-                        return Visit::Stop;
-                    }
+                    // A solid chunk's hit is taken at once (`takes`).
                     match self.takes(flat, c, &q, tri, &hit, key) {
                         Ok(false) => Visit::Continue,
                         taken => {

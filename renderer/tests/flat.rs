@@ -16,21 +16,10 @@ use renderer::{
     trace::{AlphaKey, Tracer},
 };
 
-/// A small deterministic generator (the tests need no statistical quality).
-struct Lcg(u64);
-
-impl Lcg {
-    fn next(&mut self) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    fn within(&mut self, lo: Vec3, hi: Vec3) -> Vec3 {
-        lo + (hi - lo) * Vec3::new(self.next(), self.next(), self.next())
-    }
+/// A point uniform in the box from `lo` to `hi`, drawn from the renderer's own sampler (a
+/// deterministic generator; these tests need no more of it).
+fn within(g: &mut Sampler, lo: Vec3, hi: Vec3) -> Vec3 {
+    lo + (hi - lo) * Vec3::new(g.get_1d(), g.get_1d(), g.get_1d())
 }
 
 /// The scene prepared twice: as a render node walks it (two levels) and flattened.
@@ -47,14 +36,14 @@ fn both(desc: SceneDesc, chunk_triangles: usize) -> (SceneHeader, MemoryData, Me
 fn rays(scene: &SceneHeader, n: usize) -> Vec<Ray> {
     let (lo, hi) = (scene.bounds_min, scene.bounds_max);
     let pad = (hi - lo) * 0.25;
-    let mut g = Lcg(1991);
+    let mut g = Sampler::new(1991, 0, 0, 0);
     (0..n)
         .map(|i| {
-            let origin = g.within(lo - pad, hi + pad);
-            let target = g.within(lo, hi);
+            let origin = within(&mut g, lo - pad, hi + pad);
+            let target = within(&mut g, lo, hi);
             let dir = match i % 3 {
                 0 => target - origin,
-                _ => Vec3::new(g.next() - 0.5, g.next() - 0.5, g.next() - 0.5),
+                _ => Vec3::new(g.get_1d() - 0.5, g.get_1d() - 0.5, g.get_1d() - 0.5),
             };
             let tmax = if i % 4 == 0 { 1.0 } else { f32::INFINITY };
             Ray::new(Vec3A::from(origin), Vec3A::from(dir), tmax)
