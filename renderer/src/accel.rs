@@ -16,7 +16,8 @@
 //! scale or distance from the origin. A plane distance is computed as
 //! `plane * inv_dir + offset` with `offset = -origin * inv_dir`; the rounding of `offset` is
 //! bounded by a slack folded into it per axis (see [`RayQuery`]), and what remains is
-//! relative to the distance itself, which widening the far distance by a few ulps covers.
+//! relative to the distance itself, which computing far distances with a slightly larger
+//! inverse direction covers.
 //! Triangles are tested by the watertight algorithm ([`triangle`]) four at a time with the
 //! same operations as the scalar test, which then confirms the nearest candidate and applies
 //! the rounding bound on its distance.
@@ -43,9 +44,9 @@ pub const LEAF: u32 = 1 << 31;
 /// triangles), both tested.
 pub const TWO_BLOCKS: u32 = 1 << 30;
 
-/// Far distances are widened by this many units in the last place: the relative rounding of a
-/// plane distance and of the near distance it is compared with (`1 + 3 * EPSILON` as a
-/// factor, which moves a number by three to six units).
+/// `tmax` is widened by this many units in the last place where entry distances are
+/// compared with it: the relative rounding of a near distance and of the hit's distance
+/// (`1 + 3 * EPSILON` as a factor, which moves a number by three to six units).
 const WIDEN_ULPS: i32 = 6;
 
 /// Whether child reference `c` names an inner node: not a leaf, and not 0 (the root, which
@@ -887,33 +888,50 @@ impl Bvh8 {
 
 const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 
-/// Which of the eight children the ray enters within [0, tmax], and where it enters.
+/// Which of the eight children the ray enters within [0, tmax], and where it enters;
+/// `limit` is `tmax` as [`box_limit`] makes it.
 ///
 /// Past the six plane distances everything is done on the distances' bits as integers
 /// ([`crate::simd`]), one cycle an operation instead of four: a node's test lies on the
 /// chain each step down the tree waits for. The near distance is clamped at zero, so its
 /// integer maximum is its float maximum; the far distance's integer minimum is the float
 /// minimum where no far distance is negative and negative where one is, and a box whose far
-/// side is behind the origin is missed either way. Widening the far distance by
-/// [`WIDEN_ULPS`] is an integer addition: rounding is monotonic, so widening the minimum
-/// widens each.
+/// side is behind the origin is missed either way.
+///
+/// Far distances come out widened, so that rounding never rejects a box the ray enters:
+/// they are computed with an inverse direction [`crate::ray::FAR_WIDEN`] (four units of
+/// `f32::EPSILON`) larger. A hit at distance t in the box lies between each axis's exact near
+/// and far distance; the computed near distance is at most t times (1 + EPSILON / 2) squared
+/// (the inverse direction's rounding and the fused multiply-add's; the offset's rounding is
+/// covered by its slack, see [`RayQuery`]), and the computed far one at least t times
+/// (1 + FAR_WIDEN) and three roundings of EPSILON / 2 down (those two and the larger
+/// inverse's), which is above the near one. So no addition waits on the far side, as it
+/// would to widen the far distance by units in the last place (that was one more step on
+/// the chain of every node).
 #[inline(always)]
-fn test_node(q: &RayQuery, n: &Node8, tmax: F32x8) -> (u32, F32x8) {
+fn test_node(q: &RayQuery, n: &Node8, limit: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
-    let plane = |offset: usize, axis: usize, off: &[F32x8; 3]| {
+    let plane = |offset: usize, inv: &[F32x8; 3], off: &[F32x8; 3], axis: usize| {
         // SAFETY: `RayQuery::planes` are byte offsets of whole plane arrays within the six
         // of `planes` (multiples of their size, below six times it).
         let p = unsafe { &*n.planes.as_ptr().byte_add(offset) };
-        F32x8::load(p).mul_add(q.inv8[axis], off[axis])
+        F32x8::load(p).mul_add(inv[axis], off[axis])
     };
-    let tn = [0, 1, 2].map(|k| plane(near[k], k, &q.near_off8));
-    let tf = [0, 1, 2].map(|k| plane(far[k], k, &q.far_off8));
+    let tn = [0, 1, 2].map(|k| plane(near[k], &q.inv8, &q.near_off8, k));
+    let tf = [0, 1, 2].map(|k| plane(far[k], &q.far_inv8, &q.far_off8, k));
     let tnear = tn[0]
         .max_bits(tn[1])
         .max_bits(tn[2].max_bits(F32x8::splat(0.0)));
-    let tfar = tf[0].min_bits(tf[1]).min_bits(tf[2].min_bits(tmax));
-    let hit = tnear.within_ulps(tfar, WIDEN_ULPS);
-    (hit.bits() & 0xff, tnear)
+    let tfar = tf[0].min_bits(tf[1]).min_bits(tf[2].min_bits(limit));
+    (tnear.below_bits(tfar).bits() & 0xff, tnear)
+}
+
+/// `tmax` as [`test_node`] compares near distances with it: [`WIDEN_ULPS`] units in the last
+/// place and one more up, so that a box entered at `tmax` or a little beyond (rounding) is
+/// entered.
+#[inline(always)]
+fn box_limit(tmax: f32) -> F32x8 {
+    F32x8::splat(simd::widen_ulps(tmax, WIDEN_ULPS + 1))
 }
 
 /// Asks for the cache lines of `p` (a hint: it never faults): every line it touches, counted
@@ -1058,7 +1076,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
     }
     let mut stack = Stack::new();
     let mut cur = 0u32;
-    let mut limit = F32x8::splat(*tmax);
+    let mut limit = box_limit(*tmax);
     loop {
         if cur & LEAF == 0 {
             let Some(node) = nodes.get(cur as usize) else {
@@ -1134,7 +1152,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
             if leaf(cur & !LEAF, tmax) == Visit::Stop {
                 return;
             }
-            limit = F32x8::splat(*tmax);
+            limit = box_limit(*tmax);
         }
         loop {
             let Some((c, t)) = stack.pop() else {
@@ -1570,6 +1588,60 @@ mod tests {
             want.sort_unstable_by(|a, b| b.cmp(a));
             proptest::prop_assert_eq!(&sorted[..n], &want[..]);
         }
+    }
+
+    /// The box test never rejects a box that holds a hit, whatever the scale and distance
+    /// from the origin: triangles of sizes 2^-12 to 2^20 up to 2^20 of their size away, some
+    /// of them flat along an axis (a box of no thickness), rays aimed at their corners, edges
+    /// and insides from every side.
+    #[test]
+    fn a_box_holding_a_hit_is_entered() {
+        let mut r = Lcg(11);
+        let mut hits = 0;
+        for i in 0..40_000 {
+            let scale = 2.0f32.powi((r.next() * 32.0) as i32 - 12);
+            let away = scale * 2.0f32.powi((r.next() * 20.0) as i32);
+            let center = r.vec(away);
+            let mut v = [0; 3].map(|_| Vec3A::from(center + r.vec(scale)));
+            if i % 3 == 0 {
+                let axis = i / 3 % 3;
+                let flat = v[0][axis];
+                for p in &mut v {
+                    p[axis] = flat;
+                }
+            }
+            // A corner, a point on an edge or one inside, as the ray's target.
+            let (a, b) = match i % 4 {
+                0 => (1.0, 0.0),
+                1 => (r.next(), 0.0),
+                _ => (r.next() * 0.5, r.next() * 0.5),
+            };
+            let target = v[0] + (v[1] - v[0]) * a + (v[2] - v[0]) * b;
+            let reach = scale * 2.0f32.powi((r.next() * 8.0) as i32);
+            let origin = target + Vec3A::from(r.vec(reach));
+            let dir = (target - origin).normalize();
+            if !dir.is_finite() {
+                continue;
+            }
+            let q = RayQuery::new(&Ray::infinite(origin.into(), dir.into()));
+            if triangle::intersect(&q, v[0], v[1], v[2], f32::INFINITY).is_none() {
+                continue;
+            }
+            hits += 1;
+            let mut b = Bounds::EMPTY;
+            for p in v {
+                b.add_point(p.to_array());
+            }
+            let mut node = Node8::EMPTY;
+            node.set(3, LEAF, &b);
+            let (mask, _) = test_node(&q, &node, box_limit(f32::INFINITY));
+            assert_eq!(
+                mask,
+                1 << 3,
+                "ray {origin} {dir} misses the box {b:?} of its hit"
+            );
+        }
+        assert!(hits > 20_000, "{hits} hits");
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! The kernel is written once against these types.
 //!
 //! Some operations read a lane's bits as a signed integer (`max_bits`, `min_bits`,
-//! `within_ulps`): floats not negative order as their bit patterns do, and every negative
+//! `below_bits`): floats not negative order as their bit patterns do, and every negative
 //! float (-0.0 among them) is a negative integer, below all of them. Where an answer is known
 //! not to be negative, these give the float answer, one cycle each instead of four.
 
@@ -147,15 +147,13 @@ mod imp {
                 F32x8(_mm256_castsi256_ps(m))
             }
         }
-        /// Lanes whose bit pattern is at most `ulps` above `far`'s, as signed integers: for
-        /// `self` not negative, `self <= far` with `far` moved `ulps` units in the last place
-        /// up (a negative `far` stays below).
+        /// Lanes whose bit pattern is below `b`'s, as signed integers (see [`crate::simd`]:
+        /// `self < b` where `self` is not negative; never where `b` is negative).
         #[inline(always)]
-        pub fn within_ulps(self, far: F32x8, ulps: i32) -> M8 {
+        pub fn below_bits(self, b: F32x8) -> M8 {
             unsafe {
-                let far = _mm256_add_epi32(_mm256_castps_si256(far.0), _mm256_set1_epi32(ulps + 1));
                 M8(_mm256_castsi256_ps(_mm256_cmpgt_epi32(
-                    far,
+                    _mm256_castps_si256(b.0),
                     _mm256_castps_si256(self.0),
                 )))
             }
@@ -490,8 +488,8 @@ mod imp {
             self.zip_bits(b, i32::min)
         }
         #[inline(always)]
-        pub fn within_ulps(self, far: F32x8, ulps: i32) -> M8 {
-            self.cmp(far, |a, f| super::within_ulps(a, f, ulps))
+        pub fn below_bits(self, b: F32x8) -> M8 {
+            self.cmp(b, |a, b| (a.to_bits() as i32) < b.to_bits() as i32)
         }
         #[inline(always)]
         fn map(self, f: impl Fn(f32) -> f32) -> F32x8 {
@@ -714,12 +712,19 @@ mod imp {
 
 pub use imp::{F32x4, F32x8, M4, M8, U32x8};
 
-/// One lane of [`F32x8::within_ulps`]: whether `a`'s bit pattern is at most `ulps` above
-/// `far`'s, as signed integers (for `a` not negative, `a <= far` with `far` moved `ulps` units
-/// in the last place up; a negative `far` stays below).
+/// `far` moved `ulps` units in the last place up, read as a signed integer and moved back
+/// (for `far` not negative; a negative `far` stays negative, below every distance).
+#[inline(always)]
+pub fn widen_ulps(far: f32, ulps: i32) -> f32 {
+    f32::from_bits((far.to_bits() as i32).wrapping_add(ulps) as u32)
+}
+
+/// Whether `a`'s bit pattern is at most `ulps` above `far`'s, as signed integers (for `a` not
+/// negative, `a <= far` with `far` moved `ulps` units in the last place up; a negative `far`
+/// stays below).
 #[inline(always)]
 pub fn within_ulps(a: f32, far: f32, ulps: i32) -> bool {
-    (far.to_bits() as i32).wrapping_add(ulps + 1) > a.to_bits() as i32
+    (a.to_bits() as i32) < widen_ulps(far, ulps + 1).to_bits() as i32
 }
 
 /// Made first in a function whose 8-lane values spill to its stack frame (the ray queries,
@@ -794,8 +799,10 @@ mod tests {
             } else {
                 prop_assert!(min.is_sign_negative());
             }
+            let below = va.below_bits(vb).bits() == 0xff;
             if a.is_sign_positive() {
-                let within = va.within_ulps(vb, 6).bits() == 0xff;
+                prop_assert_eq!(below, b.is_sign_positive() && a < b);
+                let within = super::within_ulps(a, b, 6);
                 if a <= b * (1.0 + 3.0 * f32::EPSILON) && b.is_sign_positive() {
                     prop_assert!(within);
                 }
