@@ -28,8 +28,9 @@
 //! hit's, and a triangle's computed distance can lie further below its own box's entry than
 //! that (once among the 26,465 hits of the grazing rays of
 //! `tests::a_box_holding_a_hit_is_entered`, in a box flat along an axis: 12 units), so a tie
-//! with such a triangle goes to the one met first. Walks of the same trees meet triangles in the same order (the flat tree is the
-//! two levels joined), which is why images stay the same bytes in every configuration.
+//! with such a triangle goes to the one met first. Walks of the same trees meet triangles in
+//! the same order (the flat tree is the two levels joined), which is why images stay the same
+//! bytes in every configuration.
 
 use std::{mem::MaybeUninit, sync::Arc};
 
@@ -1065,9 +1066,10 @@ impl Stack {
 /// Walks `nodes` from the root and calls `leaf(index, &mut tmax)` for every leaf whose box
 /// the ray enters within [0, tmax], and `node_seen(node)` for every node it tests (a no-op
 /// but where chunks entered are recorded, see [`Node8::root_of`]). `leaf` may shorten
-/// `tmax`, which prunes what is left, or stop the walk. With `NEAREST_FIRST`, children are visited in order of entry distance
-/// and those entered beyond `tmax` are skipped (closest-hit queries); without, in slot order
-/// (any-hit queries, where order matters little and sorting costs).
+/// `tmax`, which prunes what is left, or stop the walk. With `NEAREST_FIRST`, children are
+/// visited in order of entry distance and those entered beyond `tmax` are skipped
+/// (closest-hit queries); without, in slot order (any-hit queries, where order matters
+/// little and sorting costs).
 #[inline(always)]
 pub fn walk<const NEAREST_FIRST: bool>(
     nodes: &[Node8],
