@@ -1216,29 +1216,40 @@ impl Lanes {
     }
 }
 
+/// Vertex `v` of four triangles relative to the ray's origin, permuted and sheared as
+/// [`triangle::intersect_upto`] does it. A function of its own, inlined always: as a closure
+/// it was left out of line where the triangle test was inlined into a larger walk.
+#[inline(always)]
+fn tri4_vertex(
+    q: &RayQuery,
+    b: &Tri4,
+    origin: &[f32; 3],
+    k: [usize; 3],
+    v: usize,
+) -> (F32x4, F32x4, F32x4) {
+    let rel = |axis: usize| {
+        // SAFETY: `RayQuery::axes` are below 3, so `3 * v + axis` is below 9 for v < 3.
+        let p = unsafe { b.p.get_unchecked(3 * v + axis) };
+        // SAFETY: as above, `axis` is below 3.
+        F32x4::load(p).sub(F32x4::splat(unsafe { *origin.get_unchecked(axis) }))
+    };
+    let (ax, ay, az) = (rel(k[0]), rel(k[1]), rel(k[2]));
+    (
+        F32x4::splat(q.sx).neg_mul_add(az, ax),
+        F32x4::splat(q.sy).neg_mul_add(az, ay),
+        F32x4::splat(q.sz).mul(az),
+    )
+}
+
 /// Four triangles against one ray: the operations of [`triangle::intersect_upto`], in the
 /// same order, lane by lane, so each lane gives the same bits as the scalar test.
 #[inline(always)]
 fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let k = q.axes();
     let origin = q.origin.to_array();
-    let vertex = |v: usize| {
-        let rel = |axis: usize| {
-            // SAFETY: `RayQuery::axes` are below 3, so `3 * v + axis` is below 9 for v < 3.
-            let p = unsafe { b.p.get_unchecked(3 * v + axis) };
-            // SAFETY: as above, `axis` is below 3.
-            F32x4::load(p).sub(F32x4::splat(unsafe { *origin.get_unchecked(axis) }))
-        };
-        let (ax, ay, az) = (rel(k[0]), rel(k[1]), rel(k[2]));
-        (
-            F32x4::splat(q.sx).neg_mul_add(az, ax),
-            F32x4::splat(q.sy).neg_mul_add(az, ay),
-            F32x4::splat(q.sz).mul(az),
-        )
-    };
-    let (ax, ay, az) = vertex(0);
-    let (bx, by, bz) = vertex(1);
-    let (cx, cy, cz) = vertex(2);
+    let (ax, ay, az) = tri4_vertex(q, b, &origin, k, 0);
+    let (bx, by, bz) = tri4_vertex(q, b, &origin, k, 1);
+    let (cx, cy, cz) = tri4_vertex(q, b, &origin, k, 2);
     let u = cx.mul(by).sub(cy.mul(bx));
     let v = ax.mul(cy).sub(ay.mul(cx));
     let w = bx.mul(ay).sub(by.mul(ax));
@@ -1493,6 +1504,7 @@ impl Bvh8 {
             &mut tmax,
             |l| self.prefetch_leaf(l),
             node_seen,
+            #[inline(always)]
             |leaf, tmax| {
                 // Written out for the two counts: a loop over the blocks measured no faster
                 // and leaned slower (0.96 to 1.03 of this, `bench/rays_ab.py`).
