@@ -6,7 +6,7 @@ Usage (from anywhere; everything it needs it installs itself):
     python3 bench/peers/embree.py                 # 1.0-1.1 M triangles, 1 M rays a set, 5 repeats
     python3 bench/peers/embree.py --quick         # ~100 k triangles, 100 k rays: a smoke run
     python3 bench/peers/embree.py --skip-magg     # Embree only
-    options: --repeat N  --rays N  --magg PATH  --out DIR  --core C  --robust
+    options: --repeat N  --rounds R  --rays N  --magg PATH  --out DIR  --core C  --robust
 
 On its first run the script makes the virtual environment `bench/peers/.venv-embree`
 (`python3 -m venv`), pip-installs `embreex` (pinned) and `numpy` into it, and re-executes
@@ -34,11 +34,15 @@ What it does
    The mesh and the ray files are cached in the output folder under names keyed by their
    generation parameters, and made again only when absent.
 3. Traces each set with Embree on one core and times it, then runs
-   `magg-host bench rays` on the same files on the same core, and prints one markdown
-   table comparing them (also written to OUT/embree-table.md, and every figure to
-   OUT/embree-results.json), the BVH build times, up to 5 example rays per set that
-   Embree hits and magg misses, and the CPU by family, model and widest vector
-   instructions (Embree picks its code for the CPU; magg is built for x86-64-v3).
+   `magg-host bench rays` on the same files on the same core, set by set and, with
+   `--rounds R`, R times over, the two taking turns (a shared machine's speed moves by a
+   third within minutes; runs taken in turns meet it in the same state, where all of one
+   peer's runs and then all of the other's did not), and prints one markdown table
+   comparing them (best over every round, each round's ratio below it; also written to
+   OUT/embree-table.md, and every figure to OUT/embree-results.json), the BVH build
+   times, up to 5 example rays per set that Embree hits and magg misses, and the CPU by
+   family, model and widest vector instructions (Embree picks its code for the CPU; magg
+   is built for x86-64-v3).
 
 File formats (all little-endian, no header)
 -------------------------------------------
@@ -74,7 +78,8 @@ floating-point modes that Embree recommends; neither does this script.
   storing the result. Outside it: reading the file and making contiguous float32 arrays,
   and allocating the tfar array (`dists`, filled with +inf, handed in so that run() does
   not allocate it; for 'OCCLUDED' run() still allocates its int32 result array). Best and
-  median over `--repeat` runs.
+  median over `--repeat` runs in each of `--rounds` rounds, after one untimed pass a set
+  (which gives the hits the others must repeat exactly).
 - Embree's default (non-robust) intersector is not watertight: a ray through an edge shared
   by two triangles can slip between them. Unless `--robust` is given, an untimed pass with
   RTC_SCENE_FLAG_ROBUST counts such rays per set (`robust_hits_default_misses` in the JSON),
@@ -716,6 +721,18 @@ def table(rows, build, triangles):
     return "\n".join(lines) + "\n" + line + note + "\n"
 
 
+def rounds_text(rows):
+    """With more than one round: each round's magg/Embree, set by set (the table's ratio is
+    the best over the best)."""
+    if not any(len(r.get("round_ratios", [])) > 1 for r in rows):
+        return ""
+    lines = ["", "magg/Embree in each round (best of `--repeat` runs each, taken in turns):"]
+    for r in rows:
+        ratios = r.get("round_ratios", [])
+        lines.append(f"- {r['set']}: " + ", ".join(f"{x:.2f}" for x in ratios))
+    return "\n".join(lines) + "\n"
+
+
 def examples_text(rows):
     vec = lambda v: "(" + ", ".join(f"{x:.9g}" for x in v) + ")"  # noqa: E731
     out = []
@@ -735,6 +752,9 @@ def parse_args():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=None, help="timed runs a set (default 5; 3 with --quick)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="rounds taking turns: in each, every set is timed with Embree and "
+                         "then with magg (default 1); best over all rounds")
     ap.add_argument("--rays", type=int, default=None, help="rays a set (default 1,000,000; 100,000 with --quick)")
     ap.add_argument("--magg", metavar="PATH", help="the magg-host binary (default target/release/magg-host)")
     ap.add_argument("--skip-magg", action="store_true", help="Embree only")
@@ -747,8 +767,8 @@ def parse_args():
         args.repeat = 3 if args.quick else 5
     if args.rays is None:
         args.rays = 100_000 if args.quick else 1_000_000
-    if args.repeat < 1 or args.rays < 1:
-        ap.error("--repeat and --rays must be at least 1")
+    if args.repeat < 1 or args.rays < 1 or args.rounds < 1:
+        ap.error("--repeat, --rounds and --rays must be at least 1")
     return args
 
 
@@ -834,19 +854,17 @@ def main():
         write_rays(path, o, d)
         log(f"made {path.name}: {len(d):,} rays in {time.perf_counter() - t0:.1f} s")
 
-    # Embree timings.
-    rows, embree_t = [], {}
+    # Embree's hits: one untimed pass a set (which also warms the caches, as magg's bench
+    # does); the timings are taken in the rounds below, each set's beside magg's.
+    rows, embree_t, embree_results = [], {}, {}
     for name, any_hit in [(s, False) for s in SETS] + [("random", True)]:
         o, d = read_rays(ray_paths[name])
-        results, seconds = [], []
-        for _ in range(args.repeat):
-            res, sec = trace(scene, o, d, any_hit)
-            results.append(res)
-            seconds.append(sec)
-        assert all(np.array_equal(results[0], r) for r in results), "Embree not deterministic"
+        res, _ = trace(scene, o, d, any_hit)
+        results = [res]
         tag = name + ("-any-hit" if any_hit else "")
-        row = {"set": tag, "file": ray_paths[name].name, "rays": len(o),
-               "embree": stats(len(o), seconds)}
+        embree_results[tag] = res
+        row = {"set": tag, "file": ray_paths[name].name, "rays": len(o), "_seconds": [],
+               "_magg_runs": []}
         if any_hit:
             hit = results[0]
             # Any-hit must find a hit exactly where closest-hit does.
@@ -858,12 +876,7 @@ def main():
             results[0].astype("<f4").tofile(out / f"embree-hits-{name}.f32")
         row["hit_share"] = float(np.mean(hit))
         row["_hit"] = hit
-        log(f"Embree {tag}: {len(o):,} rays, {100 * row['hit_share']:.2f}% hit, "
-            f"{row['embree']['best_mrays']:.3f} M rays/s best, "
-            f"{row['embree']['median_mrays']:.3f} median")
         rows.append(row)
-    scene = None
-    gc.collect()
 
     # Embree's default intersector is not watertight: a ray through a shared edge can slip
     # between two triangles. An untimed pass with RTC_SCENE_FLAG_ROBUST counts those rays,
@@ -883,29 +896,70 @@ def main():
         robust_scene = None
         gc.collect()
 
-    # magg on the same files, one set at a time.
+    # The rounds: each set timed with Embree (`--repeat` runs) and then with magg on the same
+    # files, so that both meet the machine in the same state (a shared machine's speed moves
+    # by a third within minutes; taking turns set by set keeps that out of the ratio).
     magg_builds, magg_cmds = [], []
-    if binary is not None:
-        try:
-            for row in rows:
-                any_hit = row["set"].endswith("-any-hit")
-                name = row["set"].removesuffix("-any-hit")
+    for rnd in range(args.rounds):
+        for row in rows:
+            any_hit = row["set"].endswith("-any-hit")
+            name = row["set"].removesuffix("-any-hit")
+            o, d = read_rays(ray_paths[name])
+            seconds = []
+            for _ in range(args.repeat):
+                res, sec = trace(scene, o, d, any_hit)
+                assert np.array_equal(res, embree_results[row["set"]]), "Embree not deterministic"
+                seconds.append(sec)
+            row["_seconds"] += seconds
+            e_best = len(o) / min(seconds) / 1e6
+            log(f"round {rnd + 1}: Embree {row['set']}: {e_best:.3f} M rays/s best")
+            if binary is None:
+                continue
+            try:
                 report, mt, cmd = run_magg(binary, mesh_path, ray_paths[name], row["rays"],
                                            row["set"], args, out, any_hit)
-                magg_cmds.append(" ".join(cmd))
-                magg_builds.append(report["build_seconds"])
-                row["magg"] = report
+            except (MaggUnavailable, OSError, ValueError, KeyError, TypeError) as e:
+                magg_error = (f"{type(e).__name__}: {e}" if not isinstance(e, MaggUnavailable)
+                              else str(e))
+                log(f"magg: {magg_error}")
+                binary = None
+                continue
+            magg_cmds.append(" ".join(cmd))
+            magg_builds.append(report["build_seconds"])
+            row["_magg_runs"].append(report)
+            row.setdefault("round_ratios", []).append(
+                report["in_process"]["best_mrays"] / e_best)
+            if rnd == 0:
                 row["agreement"] = agreement(row["_hit"], embree_t[name], mt, any_hit)
                 missed = np.flatnonzero(row["_hit"] & ~np.isfinite(mt))[:5]
-                o, d = read_rays(ray_paths[name])
                 row["examples"] = [{"index": int(i), "origin": o[i].tolist(),
                                     "dir": d[i].tolist(),
                                     "embree_t": float(embree_t[name][i])} for i in missed]
-                log(f"magg {row['set']}: {report['in_process']['best_mrays']:.3f} M rays/s "
-                    f"best, hit/miss agree {100 * row['agreement']['hit_agree']:.4f}%")
-        except (MaggUnavailable, OSError, ValueError, KeyError, TypeError) as e:
-            magg_error = f"{type(e).__name__}: {e}" if not isinstance(e, MaggUnavailable) else str(e)
-            log(f"magg: {magg_error}")
+            elif not np.array_equal(mt, row["_magg_hits"]):
+                magg_error = f"magg's hits for {row['set']} changed between rounds"
+                log(f"magg: {magg_error}")
+            row["_magg_hits"] = mt
+            log(f"round {rnd + 1}: magg {row['set']}: "
+                f"{report['in_process']['best_mrays']:.3f} M rays/s best "
+                f"({row['round_ratios'][-1]:.2f} of Embree's), hit/miss agree "
+                f"{100 * row['agreement']['hit_agree']:.4f}%")
+    scene = None
+    gc.collect()
+    for row in rows:
+        row["embree"] = stats(row["rays"], row.pop("_seconds"))
+        runs = row.pop("_magg_runs")
+        row.pop("_magg_hits", None)
+        if runs:
+            # The best of every round's report, and the median of the rounds' medians.
+            best = dict(max(runs, key=lambda r: r["in_process"]["best_mrays"]))
+            for path in ("in_process", "cache"):
+                best[path] = dict(best[path])
+                best[path]["best_mrays"] = max(r[path]["best_mrays"] for r in runs)
+                best[path]["median_mrays"] = float(np.median(
+                    [r[path]["median_mrays"] for r in runs]))
+                best[path]["repeats"] = sum(r[path]["repeats"] for r in runs)
+            best["rounds"] = len(runs)
+            row["magg"] = best
 
     build = {"embree": {"best_seconds": min(commits), "median_seconds": float(np.median(commits)),
                         "seconds": commits, "geometry_upload_seconds": uploads}}
@@ -917,7 +971,7 @@ def main():
     for row in rows:
         del row["_hit"]
     cpu = cpu_identity()
-    md = (table(rows, build, len(tris)) + examples_text(rows)
+    md = (table(rows, build, len(tris)) + rounds_text(rows) + examples_text(rows)
           + f"\nCPU: {cpu} (Embree picks its code for the CPU it runs on: AVX-512 "
           "where there is AVX-512; magg is built for x86-64-v3 everywhere).\n")
     if magg_error:
@@ -927,7 +981,8 @@ def main():
     results = {
         "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "cpu": cpu,
-        "core": args.core, "repeat": args.repeat, "quick": args.quick, "robust": args.robust,
+        "core": args.core, "repeat": args.repeat, "rounds": args.rounds, "quick": args.quick,
+        "robust": args.robust,
         "embree_info": info, "numpy": np.__version__,
         "mesh": {"file": mesh_path.name, "params": mesh_params, "triangles": len(tris),
                  "vertices": len(verts), "bbox": [lo.tolist(), hi.tolist()], "diagonal": diag},
