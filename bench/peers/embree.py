@@ -860,20 +860,19 @@ def main():
     for name, any_hit in [(s, False) for s in SETS] + [("random", True)]:
         o, d = read_rays(ray_paths[name])
         res, _ = trace(scene, o, d, any_hit)
-        results = [res]
         tag = name + ("-any-hit" if any_hit else "")
         embree_results[tag] = res
         row = {"set": tag, "file": ray_paths[name].name, "rays": len(o), "_seconds": [],
                "_magg_runs": []}
         if any_hit:
-            hit = results[0]
+            hit = res
             # Any-hit must find a hit exactly where closest-hit does.
             row["embree_occluded_vs_closest_mismatch"] = int(
                 np.sum(hit != np.isfinite(embree_t["random"])))
         else:
-            embree_t[name] = results[0]
-            hit = np.isfinite(results[0])
-            results[0].astype("<f4").tofile(out / f"embree-hits-{name}.f32")
+            embree_t[name] = res
+            hit = np.isfinite(res)
+            res.astype("<f4").tofile(out / f"embree-hits-{name}.f32")
         row["hit_share"] = float(np.mean(hit))
         row["_hit"] = hit
         rows.append(row)
