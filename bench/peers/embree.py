@@ -724,11 +724,11 @@ def table(rows, build, triangles):
 def rounds_text(rows):
     """With more than one round: each round's magg/Embree, set by set (the table's ratio is
     the best over the best)."""
-    if not any(len(r.get("round_ratios", [])) > 1 for r in rows):
+    if not any(len(r["round_ratios"]) > 1 for r in rows):
         return ""
     lines = ["", "magg/Embree in each round (best of `--repeat` runs each, taken in turns):"]
     for r in rows:
-        ratios = r.get("round_ratios", [])
+        ratios = r["round_ratios"]
         lines.append(f"- {r['set']}: " + ", ".join(f"{x:.2f}" for x in ratios))
     return "\n".join(lines) + "\n"
 
@@ -857,13 +857,15 @@ def main():
     # Embree's hits: one untimed pass a set (which also warms the caches, as magg's bench
     # does); the timings are taken in the rounds below, each set's beside magg's.
     rows, embree_t, embree_results = [], {}, {}
+    # Each set read once: the rounds trace the same arrays again.
+    rays = {name: read_rays(ray_paths[name]) for name in SETS}
     for name, any_hit in [(s, False) for s in SETS] + [("random", True)]:
-        o, d = read_rays(ray_paths[name])
+        o, d = rays[name]
         res, _ = trace(scene, o, d, any_hit)
         tag = name + ("-any-hit" if any_hit else "")
         embree_results[tag] = res
         row = {"set": tag, "file": ray_paths[name].name, "rays": len(o), "_seconds": [],
-               "_magg_runs": []}
+               "_magg_runs": [], "round_ratios": []}
         if any_hit:
             hit = res
             # Any-hit must find a hit exactly where closest-hit does.
@@ -884,7 +886,7 @@ def main():
         robust_scene, _, _ = build_scene(verts, tris32, True)
         for row in rows:
             name = row["set"].removesuffix("-any-hit")
-            o, d = read_rays(ray_paths[name])
+            o, d = rays[name]
             hit, _ = trace(robust_scene, o, d, row["set"].endswith("-any-hit"))
             if not row["set"].endswith("-any-hit"):
                 hit = np.isfinite(hit)
@@ -903,7 +905,7 @@ def main():
         for row in rows:
             any_hit = row["set"].endswith("-any-hit")
             name = row["set"].removesuffix("-any-hit")
-            o, d = read_rays(ray_paths[name])
+            o, d = rays[name]
             seconds = []
             for _ in range(args.repeat):
                 res, sec = trace(scene, o, d, any_hit)
@@ -926,8 +928,7 @@ def main():
             magg_cmds.append(" ".join(cmd))
             magg_builds.append(report["build_seconds"])
             row["_magg_runs"].append(report)
-            row.setdefault("round_ratios", []).append(
-                report["in_process"]["best_mrays"] / e_best)
+            row["round_ratios"].append(report["in_process"]["best_mrays"] / e_best)
             if rnd == 0:
                 row["agreement"] = agreement(row["_hit"], embree_t[name], mt, any_hit)
                 missed = np.flatnonzero(row["_hit"] & ~np.isfinite(mt))[:5]

@@ -489,7 +489,7 @@ mod imp {
         }
         #[inline(always)]
         pub fn below_bits(self, b: F32x8) -> M8 {
-            self.cmp(b, |a, b| (a.to_bits() as i32) < b.to_bits() as i32)
+            self.cmp(b, super::below_bits)
         }
         #[inline(always)]
         fn map(self, f: impl Fn(f32) -> f32) -> F32x8 {
@@ -719,12 +719,11 @@ pub fn widen_ulps(far: f32, ulps: i32) -> f32 {
     f32::from_bits((far.to_bits() as i32).wrapping_add(ulps) as u32)
 }
 
-/// Whether `a`'s bit pattern is at most `ulps` above `far`'s, as signed integers (for `a` not
-/// negative, `a <= far` with `far` moved `ulps` units in the last place up; a negative `far`
-/// stays below).
+/// One lane of [`F32x8::below_bits`]: whether `a`'s bit pattern is below `b`'s, as signed
+/// integers (`a < b` where `a` is not negative; never where `b` is negative).
 #[inline(always)]
-pub fn within_ulps(a: f32, far: f32, ulps: i32) -> bool {
-    (a.to_bits() as i32) < widen_ulps(far, ulps + 1).to_bits() as i32
+pub fn below_bits(a: f32, b: f32) -> bool {
+    (a.to_bits() as i32) < b.to_bits() as i32
 }
 
 /// Made first in a function whose 8-lane values spill to its stack frame (the ray queries,
@@ -760,8 +759,14 @@ impl Default for AlignedFrame {
 
 #[cfg(test)]
 mod tests {
-    use super::{F32x8, U32x8};
+    use super::{F32x8, U32x8, below_bits, widen_ulps};
     use proptest::prelude::*;
+
+    /// The comparison the walk makes of an entry distance `a` with `tmax` (`far`): `a`'s bit
+    /// pattern at most `ulps` above `far`'s, as signed integers.
+    fn within_ulps(a: f32, far: f32, ulps: i32) -> bool {
+        below_bits(a, widen_ulps(far, ulps + 1))
+    }
 
     /// Any `f32` but NaN, the infinities and both zeros included.
     fn number() -> impl Strategy<Value = f32> {
@@ -802,7 +807,7 @@ mod tests {
             let below = va.below_bits(vb).bits() == 0xff;
             if a.is_sign_positive() {
                 prop_assert_eq!(below, b.is_sign_positive() && a < b);
-                let within = super::within_ulps(a, b, 6);
+                let within = within_ulps(a, b, 6);
                 if a <= b * (1.0 + 3.0 * f32::EPSILON) && b.is_sign_positive() {
                     prop_assert!(within);
                 }
