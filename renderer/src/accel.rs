@@ -1021,46 +1021,31 @@ fn farthest_first(mut k: [u64; 8], n: usize) -> [u64; 8] {
     k
 }
 
-/// A stack of (child, entry distance) for the walk, never initialised as a whole (it is
-/// needed once per ray and per chunk the ray enters).
-struct Stack {
-    /// Child reference in the low half, entry distance's bits in the high half: one word,
-    /// written and read whole (two narrower stores read back as one would stall the load).
-    entries: [MaybeUninit<u64>; STACK],
-    len: usize,
+/// The walk's stack of (child, entry distance): child reference in the low half, entry
+/// distance's bits in the high half, one word written and read whole (two narrower stores
+/// read back as one would stall the load). Never initialised as a whole (it is needed once
+/// per ray and per chunk the ray enters). Its length is the walk's own local, not a field
+/// beside the entries: as a field it stayed in memory, stored and loaded again at every push.
+type Stack = [MaybeUninit<u64>; STACK];
+
+/// Pushes `e` onto `stack` of `len` entries. A valid tree needs fewer entries than the stack
+/// holds; an entry beyond it would only be a subtree skipped, never memory written out of
+/// bounds.
+#[inline(always)]
+fn push_entry(stack: &mut Stack, len: &mut usize, e: u64) {
+    if let Some(slot) = stack.get_mut(*len) {
+        slot.write(e);
+        *len += 1;
+    }
 }
 
-impl Stack {
-    #[inline(always)]
-    fn new() -> Stack {
-        Stack {
-            entries: [const { MaybeUninit::uninit() }; STACK],
-            len: 0,
-        }
-    }
-
-    #[inline(always)]
-    fn push(&mut self, child: u32, t: f32) {
-        self.push_entry(entry(child, t));
-    }
-
-    #[inline(always)]
-    fn push_entry(&mut self, e: u64) {
-        // A valid tree needs fewer entries than the stack holds; an entry beyond it would
-        // only be a subtree skipped, never memory written out of bounds.
-        if let Some(slot) = self.entries.get_mut(self.len) {
-            slot.write(e);
-            self.len += 1;
-        }
-    }
-
-    #[inline(always)]
-    fn pop(&mut self) -> Option<(u32, f32)> {
-        self.len = self.len.checked_sub(1)?;
-        // SAFETY: every entry below `len` was written by `push`.
-        let e = unsafe { self.entries[self.len].assume_init() };
-        Some((e as u32, f32::from_bits((e >> 32) as u32)))
-    }
+/// Pops the last of `len` entries of `stack`, as (child, entry distance).
+#[inline(always)]
+fn pop_entry(stack: &Stack, len: &mut usize) -> Option<(u32, f32)> {
+    *len = len.checked_sub(1)?;
+    // SAFETY: every entry below `len` was written by `push_entry`.
+    let e = unsafe { stack[*len].assume_init() };
+    Some((e as u32, f32::from_bits((e >> 32) as u32)))
 }
 
 /// Walks `nodes` from the root and calls `leaf(index, &mut tmax)` for every leaf whose box
@@ -1082,7 +1067,8 @@ pub fn walk<const NEAREST_FIRST: bool>(
     if nodes.is_empty() || !q.is_finite() {
         return;
     }
-    let mut stack = Stack::new();
+    let mut stack: Stack = [const { MaybeUninit::uninit() }; STACK];
+    let mut len = 0usize;
     let mut cur = 0u32;
     let mut limit = F32x8::splat(box_limit(*tmax));
     loop {
@@ -1119,7 +1105,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
                         let far = cb ^ ((ca ^ cb) & swap);
                         let far_t = tb ^ ((ta ^ tb) & swap);
                         prefetch_child(nodes, far, &leaf_lines);
-                        stack.push(far, f32::from_bits(far_t));
+                        push_entry(&mut stack, &mut len, entry(far, f32::from_bits(far_t)));
                         cur = near;
                         continue;
                     }
@@ -1137,7 +1123,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
                     }
                     let keys = farthest_first(keys, n);
                     for &k in &keys[..n - 1] {
-                        stack.push_entry(k);
+                        push_entry(&mut stack, &mut len, k);
                     }
                     cur = keys[n - 1] as u32;
                 } else {
@@ -1150,7 +1136,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
                         let i = (m.trailing_zeros() & 7) as usize;
                         m &= m - 1;
                         prefetch_child(nodes, node.child[i], &leaf_lines);
-                        stack.push(node.child[i], 0.0);
+                        push_entry(&mut stack, &mut len, entry(node.child[i], 0.0));
                     }
                     cur = node.child[z];
                 }
@@ -1163,7 +1149,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
             limit = F32x8::splat(box_limit(*tmax));
         }
         loop {
-            let Some((c, t)) = stack.pop() else {
+            let Some((c, t)) = pop_entry(&stack, &mut len) else {
                 return;
             };
             // A child entered at `t` is still worth a visit: `test_node`'s comparison.
