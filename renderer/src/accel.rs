@@ -32,7 +32,7 @@
 //! the same order (the flat tree is the two levels joined), which is why images stay the same
 //! bytes in every configuration.
 
-use std::{mem::MaybeUninit, sync::Arc};
+use std::{mem::MaybeUninit, ops::Range, sync::Arc};
 
 use crate::{
     bvh::{self, Child, MAX_DEPTH, Visit, WideNode},
@@ -1167,7 +1167,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
 /// The blocks of chunk leaf `leaf` (a child reference less [`LEAF`]): one, or two with
 /// [`TWO_BLOCKS`].
 #[inline(always)]
-fn leaf_span(leaf: u32) -> std::ops::Range<usize> {
+fn leaf_span(leaf: u32) -> Range<usize> {
     let at = (leaf & !TWO_BLOCKS) as usize;
     at..at + 1 + usize::from(leaf & TWO_BLOCKS != 0)
 }
@@ -1452,7 +1452,16 @@ impl Bvh8 {
     /// The blocks of leaf `leaf` ([`leaf_span`]), if they lie in this tree.
     #[inline(always)]
     fn leaf(&self, leaf: u32) -> Option<&[Tri4]> {
-        self.leaves.get(leaf_span(leaf))
+        let Range { start, end } = leaf_span(leaf);
+        // One comparison: `leaves.get(start..end)` also checked `start <= end` (the compiler
+        // could not see that it holds), six instructions at every leaf a ray meets.
+        if end <= self.leaves.len() {
+            // SAFETY: `leaf_span` gives `start < end` (`end` is `start` plus one or two, and
+            // `start` is below 2^30), and `end` is within the slice.
+            Some(unsafe { self.leaves.get_unchecked(start..end) })
+        } else {
+            None
+        }
     }
 
     /// Updates `best` with the closest hit in this chunk (`chunk` is its id) that `accept`
