@@ -984,9 +984,10 @@ fn entry(child: u32, t: f32) -> u64 {
 /// The first `n` (3 to 8) of `keys` ordered farthest first, so that pushed in that order
 /// the nearest is popped first. Three and four, the common counts, by sorting networks
 /// (compare and exchange without branches, whose outcome no predictor could guess);
-/// more by insertion.
+/// more by insertion. In place: sorted into a new array, the keys were copied from one
+/// array on the frame to another before the pushes.
 #[inline(always)]
-fn farthest_first(mut k: [u64; 8], n: usize) -> [u64; 8] {
+fn farthest_first(k: &mut [u64; 8], n: usize) {
     #[inline(always)]
     fn order(k: &mut [u64; 8], i: usize, j: usize) {
         let (a, b) = (k[i], k[j]);
@@ -995,16 +996,16 @@ fn farthest_first(mut k: [u64; 8], n: usize) -> [u64; 8] {
     }
     match n {
         3 => {
-            order(&mut k, 0, 1);
-            order(&mut k, 1, 2);
-            order(&mut k, 0, 1);
+            order(k, 0, 1);
+            order(k, 1, 2);
+            order(k, 0, 1);
         }
         4 => {
-            order(&mut k, 0, 1);
-            order(&mut k, 2, 3);
-            order(&mut k, 0, 2);
-            order(&mut k, 1, 3);
-            order(&mut k, 1, 2);
+            order(k, 0, 1);
+            order(k, 2, 3);
+            order(k, 0, 2);
+            order(k, 1, 3);
+            order(k, 1, 2);
         }
         _ => {
             for i in 1..n.min(8) {
@@ -1018,7 +1019,6 @@ fn farthest_first(mut k: [u64; 8], n: usize) -> [u64; 8] {
             }
         }
     }
-    k
 }
 
 /// The walk's stack of (child, entry distance): child reference in the low half, entry
@@ -1121,7 +1121,7 @@ pub fn walk<const NEAREST_FIRST: bool>(
                         keys[n & 7] = entry(node.child[i], t[i]);
                         n += 1;
                     }
-                    let keys = farthest_first(keys, n);
+                    farthest_first(&mut keys, n);
                     for &k in &keys[..n - 1] {
                         push_entry(&mut stack, &mut len, k);
                     }
@@ -1602,7 +1602,8 @@ mod tests {
                 keys[i] = entry(i as u32, d);
             }
             let n = t.len();
-            let sorted = farthest_first(keys, n);
+            let mut sorted = keys;
+            farthest_first(&mut sorted, n);
             let mut want = keys[..n].to_vec();
             want.sort_unstable_by(|a, b| b.cmp(a));
             proptest::prop_assert_eq!(&sorted[..n], &want[..]);
