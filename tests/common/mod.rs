@@ -40,8 +40,21 @@ pub fn scratch(name: &str) -> PathBuf {
     p
 }
 
+/// Runs `cmd` to its end. An executable a test has just written (a copy of the host) may
+/// still be held open for writing by a child that another test thread forked meanwhile, until
+/// that child's own exec; Linux refuses to run the file until then ("Text file busy"). That
+/// race is the test harness's, not the program's, so the start is tried again while it lasts.
 pub fn run(cmd: &mut Command) -> Output {
-    cmd.output().expect("run binary")
+    let mut tries = 0;
+    loop {
+        match cmd.output() {
+            Err(e) if e.kind() == std::io::ErrorKind::ExecutableFileBusy && tries < 50 => {
+                tries += 1;
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            r => return r.expect("run binary"),
+        }
+    }
 }
 
 pub fn stderr(o: &Output) -> String {
