@@ -1172,13 +1172,15 @@ fn leaf_span(leaf: u32) -> Range<usize> {
     at..at + 1 + usize::from(leaf & TWO_BLOCKS != 0)
 }
 
-/// What the four-lane triangle test found.
+/// What the four-lane triangle test found. Every field a vector or a mask, none an array:
+/// with the distances as an array indexed by lane, the whole value lived in memory and every
+/// leaf a ray met stored it there, hit or not.
 struct Lanes {
     /// Lanes that hit within (0, tmax], their rounding bound cleared.
     hits: u32,
     /// Lanes whose edge functions came out exactly zero: the scalar test (in f64) decides.
     undecided: u32,
-    t: [f32; 4],
+    t: F32x4,
     u: F32x4,
     v: F32x4,
     w: F32x4,
@@ -1191,13 +1193,15 @@ impl Lanes {
     /// the store buffer cannot forward.
     #[inline(always)]
     fn hit(&self, lane: usize) -> TriHit {
-        let (mut u, mut v, mut w, mut inv) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+        let (mut t, mut u, mut v, mut w, mut inv) =
+            ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+        self.t.store(&mut t);
         self.u.store(&mut u);
         self.v.store(&mut v);
         self.w.store(&mut w);
         self.inv_det.store(&mut inv);
         TriHit {
-            t: self.t[lane],
+            t: t[lane],
             b0: u[lane] * inv[lane],
             b1: v[lane] * inv[lane],
             b2: w[lane] * inv[lane],
@@ -1254,7 +1258,7 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
     let no_hits = |inv_det| Lanes {
         hits: 0,
         undecided: undecided & 0xf,
-        t: [0.0; 4],
+        t: zero,
         u,
         v,
         w,
@@ -1302,7 +1306,7 @@ fn test_tri4(q: &RayQuery, b: &Tri4, tmax: f32) -> Lanes {
         )
         .mul(inv_det.abs());
     out.hits = maybe & t.gt(delta_t).bits();
-    t.store(&mut out.t);
+    out.t = t;
     out
 }
 
@@ -1351,12 +1355,45 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
     accept: &mut A,
 ) -> bool {
     let lanes = test_tri4(q, block, best.t);
-    let mut left = lanes.hits | lanes.undecided;
-    if left == 0 {
+    if lanes.undecided != 0 {
+        return closest_in_undecided_leaf(q, block, tris, chunk, best, accept);
+    }
+    if lanes.hits == 0 {
         return false;
     }
-    let mut t = lanes.t;
-    // Lanes the four-lane test cannot decide are decided exactly.
+    let mut t = [0.0; 4];
+    lanes.t.store(&mut t);
+    take_nearest(
+        block,
+        tris,
+        chunk,
+        best,
+        accept,
+        lanes.hits,
+        &t,
+        #[inline(always)]
+        |lane| lanes.hit(lane),
+    )
+}
+
+/// [`closest_in_leaf`] where some lane's edge functions came out exactly zero (a ray
+/// through an edge or a vertex): those lanes are decided by the scalar test. Rare, and out of
+/// line, so that the common case keeps its registers; it tests the block again rather than
+/// take the lanes' results, which the common case would then have to store for it.
+#[cold]
+#[inline(never)]
+fn closest_in_undecided_leaf<A: FnMut(u32, &TriHit) -> bool>(
+    q: &RayQuery,
+    block: &Tri4,
+    tris: u32,
+    chunk: u32,
+    best: &mut Closest,
+    accept: &mut A,
+) -> bool {
+    let lanes = test_tri4(q, block, best.t);
+    let mut left = lanes.hits | lanes.undecided;
+    let mut t = [0.0; 4];
+    lanes.t.store(&mut t);
     let mut exact: [Option<TriHit>; 4] = [None; 4];
     let mut z = lanes.undecided;
     while z != 0 {
@@ -1371,12 +1408,38 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
             None => left &= !(1 << lane),
         }
     }
-    // The nearest that `accept` takes, ties to the lower triangle index.
+    take_nearest(
+        block,
+        tris,
+        chunk,
+        best,
+        accept,
+        left,
+        &t,
+        #[inline(always)]
+        |lane| exact[lane].unwrap_or_else(|| lanes.hit(lane)),
+    )
+}
+
+/// Of the lanes `left` of `block`, hit at distances `t`, the nearest that `accept` takes
+/// (ties to the lower triangle index) becomes `best` if it beats it; true if one did.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn take_nearest<A: FnMut(u32, &TriHit) -> bool>(
+    block: &Tri4,
+    tris: u32,
+    chunk: u32,
+    best: &mut Closest,
+    accept: &mut A,
+    mut left: u32,
+    t: &[f32; 4],
+    hit: impl Fn(usize) -> TriHit,
+) -> bool {
     while left != 0 {
-        let mut pick = left.trailing_zeros() as usize;
+        let mut pick = left.trailing_zeros() as usize & 3;
         let mut m = left & (left - 1);
         while m != 0 {
-            let lane = m.trailing_zeros() as usize;
+            let lane = m.trailing_zeros() as usize & 3;
             m &= m - 1;
             if (t[lane], block.id[lane]) < (t[pick], block.id[pick]) {
                 pick = lane;
@@ -1390,7 +1453,7 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
         if !best.beaten_by(t[pick], chunk, tri) {
             return false;
         }
-        let h = exact[pick].unwrap_or_else(|| lanes.hit(pick));
+        let h = hit(pick);
         if accept(tri, &h) {
             *best = Closest {
                 t: h.t,
@@ -1415,23 +1478,71 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
     f: &mut F,
 ) -> Visit {
     let lanes = test_tri4(q, block, tmax);
-    let mut m = lanes.hits | lanes.undecided;
+    if lanes.undecided != 0 {
+        return hits_in_undecided_leaf(q, block, tris, tmax, f);
+    }
+    if lanes.hits == 0 {
+        return Visit::Continue;
+    }
+    report_each(
+        block,
+        tris,
+        lanes.hits,
+        f,
+        #[inline(always)]
+        |lane| Some(lanes.hit(lane)).filter(|h| h.t < tmax),
+    )
+}
+
+/// [`hits_in_leaf`] where some lane's edge functions came out exactly zero: as
+/// [`closest_in_undecided_leaf`], out of line, those lanes decided by the scalar test.
+#[cold]
+#[inline(never)]
+fn hits_in_undecided_leaf<F: FnMut(u32, TriHit) -> Visit>(
+    q: &RayQuery,
+    block: &Tri4,
+    tris: u32,
+    tmax: f32,
+    f: &mut F,
+) -> Visit {
+    let lanes = test_tri4(q, block, tmax);
+    report_each(
+        block,
+        tris,
+        lanes.hits | lanes.undecided,
+        f,
+        #[inline(always)]
+        |lane| {
+            if lanes.hits & (1 << lane) != 0 {
+                Some(lanes.hit(lane)).filter(|h| h.t < tmax)
+            } else {
+                let (v0, v1, v2) = lane_points(block, lane);
+                triangle::intersect(q, v0, v1, v2, tmax)
+            }
+        },
+    )
+}
+
+/// Calls `f` for the hit `hit(lane)` finds, if any, of each lane of `lanes` of `block`, each
+/// triangle once (unused lanes repeat lane 0), until it says stop.
+#[inline(always)]
+fn report_each<F: FnMut(u32, TriHit) -> Visit>(
+    block: &Tri4,
+    tris: u32,
+    mut lanes: u32,
+    f: &mut F,
+    hit: impl Fn(usize) -> Option<TriHit>,
+) -> Visit {
     let mut reported = [u32::MAX; 4];
-    while m != 0 {
-        let lane = m.trailing_zeros() as usize;
-        m &= m - 1;
+    while lanes != 0 {
+        let lane = lanes.trailing_zeros() as usize & 3;
+        lanes &= lanes - 1;
         let tri = block.id[lane];
         if tri >= tris || reported.contains(&tri) {
             continue;
         }
         reported[lane] = tri;
-        let hit = if lanes.hits & (1 << lane) != 0 {
-            Some(lanes.hit(lane)).filter(|h| h.t < tmax)
-        } else {
-            let (v0, v1, v2) = lane_points(block, lane);
-            triangle::intersect(q, v0, v1, v2, tmax)
-        };
-        if let Some(h) = hit
+        if let Some(h) = hit(lane)
             && f(tri, h) == Visit::Stop
         {
             return Visit::Stop;
