@@ -1188,20 +1188,27 @@ struct Lanes {
 }
 
 impl Lanes {
-    /// The hit of `lane`, as the scalar test would report it. Inlined: out of line, it
-    /// wrote the hit as four scalars that its caller read back as one 16-byte word, a load
-    /// the store buffer cannot forward.
+    /// The distances, lane by lane: what the callers pick a lane by and hand to
+    /// [`Lanes::hit`] (stored once, where a lane hits).
     #[inline(always)]
-    fn hit(&self, lane: usize) -> TriHit {
-        let (mut t, mut u, mut v, mut w, mut inv) =
-            ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
+    fn distances(&self) -> [f32; 4] {
+        let mut t = [0.0; 4];
         self.t.store(&mut t);
+        t
+    }
+
+    /// The hit of `lane`, at its distance `t` (from [`Lanes::distances`]), as the scalar test
+    /// would report it. Inlined: out of line, it wrote the hit as four scalars that its
+    /// caller read back as one 16-byte word, a load the store buffer cannot forward.
+    #[inline(always)]
+    fn hit(&self, lane: usize, t: f32) -> TriHit {
+        let (mut u, mut v, mut w, mut inv) = ([0.0; 4], [0.0; 4], [0.0; 4], [0.0; 4]);
         self.u.store(&mut u);
         self.v.store(&mut v);
         self.w.store(&mut w);
         self.inv_det.store(&mut inv);
         TriHit {
-            t: t[lane],
+            t,
             b0: u[lane] * inv[lane],
             b1: v[lane] * inv[lane],
             b2: w[lane] * inv[lane],
@@ -1361,8 +1368,7 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
     if lanes.hits == 0 {
         return false;
     }
-    let mut t = [0.0; 4];
-    lanes.t.store(&mut t);
+    let t = lanes.distances();
     take_nearest(
         block,
         tris,
@@ -1372,7 +1378,7 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
         lanes.hits,
         &t,
         #[inline(always)]
-        |lane| lanes.hit(lane),
+        |lane| lanes.hit(lane, t[lane]),
     )
 }
 
@@ -1392,8 +1398,7 @@ fn closest_in_undecided_leaf<A: FnMut(u32, &TriHit) -> bool>(
 ) -> bool {
     let lanes = test_tri4(q, block, best.t);
     let mut left = lanes.hits | lanes.undecided;
-    let mut t = [0.0; 4];
-    lanes.t.store(&mut t);
+    let mut t = lanes.distances();
     let mut exact: [Option<TriHit>; 4] = [None; 4];
     let mut z = lanes.undecided;
     while z != 0 {
@@ -1417,7 +1422,7 @@ fn closest_in_undecided_leaf<A: FnMut(u32, &TriHit) -> bool>(
         left,
         &t,
         #[inline(always)]
-        |lane| exact[lane].unwrap_or_else(|| lanes.hit(lane)),
+        |lane| exact[lane].unwrap_or_else(|| lanes.hit(lane, t[lane])),
     )
 }
 
@@ -1484,13 +1489,14 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
     if lanes.hits == 0 {
         return Visit::Continue;
     }
+    let t = lanes.distances();
     report_each(
         block,
         tris,
         lanes.hits,
         f,
         #[inline(always)]
-        |lane| Some(lanes.hit(lane)).filter(|h| h.t < tmax),
+        |lane| Some(lanes.hit(lane, t[lane])).filter(|h| h.t < tmax),
     )
 }
 
@@ -1506,6 +1512,7 @@ fn hits_in_undecided_leaf<F: FnMut(u32, TriHit) -> Visit>(
     f: &mut F,
 ) -> Visit {
     let lanes = test_tri4(q, block, tmax);
+    let t = lanes.distances();
     report_each(
         block,
         tris,
@@ -1514,7 +1521,7 @@ fn hits_in_undecided_leaf<F: FnMut(u32, TriHit) -> Visit>(
         #[inline(always)]
         |lane| {
             if lanes.hits & (1 << lane) != 0 {
-                Some(lanes.hit(lane)).filter(|h| h.t < tmax)
+                Some(lanes.hit(lane, t[lane])).filter(|h| h.t < tmax)
             } else {
                 let (v0, v1, v2) = lane_points(block, lane);
                 triangle::intersect(q, v0, v1, v2, tmax)
@@ -1818,7 +1825,8 @@ mod tests {
                 if lanes.undecided & (1 << lane) != 0 {
                     continue;
                 }
-                let simd = (lanes.hits & (1 << lane) != 0).then(|| lanes.hit(lane));
+                let t = lanes.distances();
+                let simd = (lanes.hits & (1 << lane) != 0).then(|| lanes.hit(lane, t[lane]));
                 let bits = |h: Option<TriHit>| h.map(|h| [h.t, h.b0, h.b1, h.b2].map(f32::to_bits));
                 assert_eq!(bits(simd), bits(scalar), "lane {lane}");
                 hits += scalar.is_some() as usize;
