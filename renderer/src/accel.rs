@@ -2157,7 +2157,9 @@ mod tests {
     }
 
     /// A deep tree (triangles at exponentially growing distances nest their boxes one in
-    /// the next, out to 1e34) finds what brute force finds, nearest and every hit.
+    /// the next, out to 1e34) finds what brute force finds, nearest and every hit. The
+    /// binned build makes 13 levels of it (it splits off about ten triangles a level where
+    /// PLOC merged one at a time and made 17 or more).
     #[test]
     fn a_deep_tree_finds_what_brute_force_finds() {
         let mut m = MeshData::default();
@@ -2174,7 +2176,7 @@ mod tests {
         }
         let chunk = whole_chunk(&m);
         let depth = levels(&chunk.accel().nodes);
-        assert!(depth > 16, "a tree of {depth} levels");
+        assert!(depth > 12, "a tree of {depth} levels");
         let mut r = Lcg(5);
         let mut hits = 0;
         for k in 0..600 {
