@@ -10,11 +10,11 @@
 //! Building: a binary tree, for a chunk's triangles by top-down binned surface area
 //! heuristic (`binned_sah`), for the top-level tree over chunks by obvhs (PLOC, then
 //! reinsertion), which is then collapsed into the wide tree of least expected cost under
-//! the surface area heuristic, by dynamic programming over the binary tree (Ylitie, Karras and Laine, "Efficient Incoherent Ray
-//! Traversal on GPUs Through Compressed Wide BVHs", 2017): for every binary node and every
-//! number of slots from one to eight, the cheapest way to represent its subtree in that many
-//! child slots, each slot a leaf of up to eight primitives (one four-lane test, or two for
-//! more than four) or a wide node. Deterministic: obvhs is used without its parallel
+//! the surface area heuristic, by dynamic programming over the binary tree (Ylitie, Karras
+//! and Laine, "Efficient Incoherent Ray Traversal on GPUs Through Compressed Wide BVHs",
+//! 2017): for every binary node and every number of slots from one to eight, the cheapest
+//! way to represent its subtree in that many child slots, each slot a leaf of up to eight
+//! primitives (one four-lane test, or two for more than four) or a wide node. Deterministic: obvhs is used without its parallel
 //! feature, the binned build sorts and bins in a fixed order, and ties keep the first
 //! choice, so the same boxes give the same tree.
 
@@ -486,296 +486,6 @@ pub enum Visit {
     Stop,
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use glam::Vec3A;
-
-    fn boxes(n: usize) -> Vec<Aabb> {
-        (0..n)
-            .map(|i| {
-                let x = (i % 10) as f32;
-                let y = ((i / 10) % 10) as f32;
-                let z = (i / 100) as f32;
-                Aabb::new(Vec3A::new(x, y, z), Vec3A::new(x + 0.5, y + 0.5, z + 0.5))
-            })
-            .collect()
-    }
-
-    /// A row of costs in 1 to 8 slots as the plan makes them: never rising with more slots,
-    /// with repeats (a subtree that gains nothing from another slot) and, for a leaf, one
-    /// value throughout.
-    fn cost_row() -> impl proptest::strategy::Strategy<Value = [f64; 8]> {
-        use proptest::prelude::*;
-        (prop::array::uniform8(0u8..4), 1.0f64..1e6, any::<bool>()).prop_map(
-            |(drops, start, constant)| {
-                let mut row = [start; 8];
-                for j in 1..8 {
-                    let step = if constant {
-                        0.0
-                    } else {
-                        f64::from(drops[j]) * 0.125
-                    };
-                    row[j] = row[j - 1] * (1.0 - step * 0.5);
-                }
-                row
-            },
-        )
-    }
-
-    proptest::proptest! {
-        /// The shortcut for a left leaf gives what the plain loop over every split gives,
-        /// costs and the left child's slots alike (the trees come out the same).
-        #[test]
-        fn distributing_slots_matches_trying_every_split(
-            left in cost_row(),
-            right in cost_row(),
-            leaf_cost in 1.0f64..1e6,
-        ) {
-            let plain = |left: &[f64; 8]| -> [(f64, u8); 8] {
-                std::array::from_fn(|j| {
-                    let mut best = (f64::INFINITY, 0u8);
-                    for k in 1..=j {
-                        let cost = left[k - 1] + right[j - k];
-                        if cost < best.0 {
-                            best = (cost, k as u8);
-                        }
-                    }
-                    best
-                })
-            };
-            let leaf = [leaf_cost; 8];
-            proptest::prop_assert_eq!(distribute(&leaf, &right, true), plain(&leaf));
-            proptest::prop_assert_eq!(distribute(&left, &right, false), plain(&left));
-        }
-    }
-
-    /// Boxes far apart enough that their areas overflow f32 (a mesh spanning 1e30 units)
-    /// still make a tree of leaves of at most eight: the builder once chose a leaf of every
-    /// primitive below a node whose cost had become infinite, and panicked emitting it.
-    #[test]
-    fn boxes_whose_areas_overflow_f32_still_build() {
-        let b: Vec<Aabb> = (0..300)
-            .map(|i| {
-                let x = 1.3f32.powi(i);
-                Aabb::new(Vec3A::new(x, -x, -x), Vec3A::new(1.1 * x, x, x))
-            })
-            .collect();
-        assert!(b[299].half_area().is_infinite());
-        let t = build(&b, MAX_LEAF);
-        assert!(validate_tree(&t.nodes, b.len()).is_ok());
-        let mut order = t.order.clone();
-        order.sort();
-        assert_eq!(order, (0..300).collect::<Vec<u32>>());
-    }
-
-    /// Boxes from a fixed generator: `n` boxes of random size around random points, at
-    /// `offset` from the origin and spread over `spread` units.
-    fn scattered(n: usize, offset: f32, spread: f32, seed: u64) -> Vec<Aabb> {
-        let mut state = seed;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
-        (0..n)
-            .map(|_| {
-                let c = Vec3A::new(next(), next(), next()) * spread + Vec3A::splat(offset);
-                let h = Vec3A::new(next(), next(), next()) * spread * 0.01;
-                Aabb::new(c - h, c + h)
-            })
-            .collect()
-    }
-
-    /// The binned build's binary tree: every box in exactly one leaf of at most the leaf
-    /// size, each node's box exactly its children's (or its leaf's boxes') union, and the
-    /// same tree from the same boxes. Cases: many boxes (binned), few (split exactly), all
-    /// at one point (no axis to split along), and spread over less than the coordinates'
-    /// rounding can tell apart (every centre in one bin).
-    #[test]
-    fn binned_trees_hold_every_box_once_in_exact_bounds() {
-        let cases = [
-            scattered(5000, 0.0, 100.0, 1),
-            scattered(7, -3.0, 1.0, 2),
-            vec![Aabb::new(Vec3A::splat(1.0), Vec3A::splat(2.0)); 300],
-            scattered(300, 1.0e7, 0.01, 3),
-        ];
-        for (case, b) in cases.iter().enumerate() {
-            for max_leaf in [1, 4, MAX_LEAF] {
-                let (mut t, mut again) = (Bvh2::default(), Bvh2::default());
-                let mut scratch = SahScratch::default();
-                binned_sah(b, max_leaf, &mut t, &mut scratch);
-                binned_sah(b, max_leaf, &mut again, &mut scratch);
-                let same = |x: &Bvh2, y: &Bvh2| {
-                    x.primitive_indices == y.primitive_indices
-                        && x.nodes.len() == y.nodes.len()
-                        && x.nodes.iter().zip(&y.nodes).all(|(m, n)| {
-                            (m.aabb.min, m.aabb.max, m.prim_count, m.first_index)
-                                == (n.aabb.min, n.aabb.max, n.prim_count, n.first_index)
-                        })
-                };
-                assert!(same(&t, &again), "case {case}: not deterministic");
-                let mut seen = vec![0; b.len()];
-                let mut work = vec![0usize];
-                while let Some(i) = work.pop() {
-                    let node = &t.nodes[i];
-                    let union = if node.prim_count != 0 {
-                        assert!(node.prim_count as usize <= SAH_LEAF.min(max_leaf as usize));
-                        let first = node.first_index as usize;
-                        let mut u = Aabb::INVALID;
-                        for &p in &t.primitive_indices[first..first + node.prim_count as usize] {
-                            seen[p as usize] += 1;
-                            u = u.union(&b[p as usize]);
-                        }
-                        u
-                    } else {
-                        let l = node.first_index as usize;
-                        work.extend([l, l + 1]);
-                        t.nodes[l].aabb.union(&t.nodes[l + 1].aabb)
-                    };
-                    assert_eq!(
-                        (union.min, union.max),
-                        (node.aabb.min, node.aabb.max),
-                        "case {case}"
-                    );
-                }
-                assert!(
-                    seen.iter().all(|&s| s == 1),
-                    "case {case}: boxes not once each"
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn every_primitive_is_in_exactly_one_leaf() {
-        for n in [1, 2, 3, 4, 5, 9, 100, 1000] {
-            let t = build(&boxes(n), MAX_LEAF);
-            assert!(validate_tree(&t.nodes, n).is_ok(), "{n} boxes");
-            let mut seen = vec![0; n];
-            for &p in &t.order {
-                seen[p as usize] += 1;
-            }
-            assert!(seen.iter().all(|&s| s == 1), "{n} boxes");
-            let mut covered = vec![0; n];
-            for node in &t.nodes {
-                for &r in node {
-                    if let Child::Leaf { first, count } = child(r) {
-                        for i in first..first + count {
-                            covered[i as usize] += 1;
-                        }
-                    }
-                }
-            }
-            assert!(covered.iter().all(|&c| c == 1), "{n} boxes");
-        }
-    }
-
-    /// The expected cost of the subtree at node `i` under the collapse's heuristic (areas
-    /// times costs, as the collapse sums them), and its box.
-    fn wide_cost(t: &WideTree, boxes: &[Aabb], i: usize) -> (f64, Aabb) {
-        let mut cost = 0.0;
-        let mut bounds = Aabb::empty();
-        for &r in &t.nodes[i] {
-            match child(r) {
-                Child::Empty => {}
-                Child::Node(n) => {
-                    let (c, b) = wide_cost(t, boxes, n as usize);
-                    cost += c;
-                    bounds = bounds.union(&b);
-                }
-                Child::Leaf { first, count } => {
-                    let mut b = Aabb::empty();
-                    for p in &t.order[first as usize..(first + count) as usize] {
-                        b = b.union(&boxes[*p as usize]);
-                    }
-                    cost += half_area_f64(&b) * leaf_cost(count);
-                    bounds = bounds.union(&b);
-                }
-            }
-        }
-        (cost + half_area_f64(&bounds) * NODE_COST, bounds)
-    }
-
-    /// The top-level tree holds every chunk box in a leaf of its own, and the search for it
-    /// finds a cheaper tree than the chunks' builder makes over the same boxes (a grid, and
-    /// clusters of overlapping boxes of many sizes, as chunks of meshes of many sizes are).
-    #[test]
-    fn the_top_level_tree_holds_every_box_once_and_costs_no_more() {
-        let mut r = crate::testing::Lcg(7);
-        let clusters: Vec<Aabb> = (0..400)
-            .map(|_| {
-                let c = Vec3A::new(r.next(), r.next(), r.next() * 0.2) * 100.0;
-                let size = Vec3A::new(r.next(), r.next(), r.next()) * (1.0 + 20.0 * r.next());
-                Aabb::new(c - size, c + size)
-            })
-            .collect();
-        for set in [boxes(1), boxes(7), boxes(300), clusters] {
-            let n = set.len();
-            let top = build_top(&set);
-            assert!(validate_tree(&top.nodes, n).is_ok(), "{n} boxes");
-            let mut seen = vec![0; n];
-            for node in &top.nodes {
-                for &r in node {
-                    if let Child::Leaf { first, count } = child(r) {
-                        assert_eq!(count, 1, "{n} boxes: one chunk a leaf");
-                        seen[top.order[first as usize] as usize] += 1;
-                    }
-                }
-            }
-            assert!(seen.iter().all(|&s| s == 1), "{n} boxes");
-            let (top_cost, _) = wide_cost(&top, &set, 0);
-            let (plain_cost, _) = wide_cost(&build(&set, 1), &set, 0);
-            // A few boxes leave no choice; over hundreds the search must find a cheaper tree.
-            if n < 100 {
-                assert_eq!(top_cost, plain_cost, "{n} boxes");
-            } else {
-                assert!(
-                    top_cost < plain_cost,
-                    "{n} boxes: {top_cost} >= {plain_cost}"
-                );
-            }
-        }
-    }
-
-    /// Every count a leaf may hold, at the lowest and highest first primitive, reads back as
-    /// written; what does not fit is refused, not wrapped.
-    #[test]
-    fn leaf_references_read_back() {
-        for count in 1..=MAX_LEAF {
-            for first in [0, 1, (1 << 28) - 2] {
-                let r = leaf(first, count).unwrap();
-                assert_eq!(child(r), Child::Leaf { first, count });
-            }
-        }
-        assert_eq!(leaf((1 << 28) - 1, MAX_LEAF), None);
-        assert_eq!(leaf(0, 0), None);
-        assert_eq!(leaf(0, MAX_LEAF + 1), None);
-        assert_eq!(leaf(1 << 28, 1), None);
-    }
-
-    #[test]
-    fn corrupt_trees_are_refused() {
-        let t = build(&boxes(300), 4);
-        let mut nodes = t.nodes.clone();
-        nodes[0][0] = 10_000;
-        assert!(matches!(
-            validate_tree(&nodes, 300),
-            Err(NodeError::ChildOutOfRange { .. })
-        ));
-        let mut nodes = t.nodes.clone();
-        nodes[0][1] = 0;
-        assert_eq!(validate_tree(&nodes, 300), Err(NodeError::TooDeep));
-        let mut nodes = t.nodes.clone();
-        nodes[0][2] = leaf(299, 4).unwrap();
-        assert!(matches!(
-            validate_tree(&nodes, 300),
-            Err(NodeError::PrimitiveOutOfRange { .. })
-        ));
-    }
-}
-
 /// Bins per axis of [`binned_sah`].
 const SAH_BINS: usize = 32;
 
@@ -1036,5 +746,295 @@ fn insertion_sort(v: &mut [u64]) {
             j -= 1;
         }
         v[j] = x;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3A;
+
+    fn boxes(n: usize) -> Vec<Aabb> {
+        (0..n)
+            .map(|i| {
+                let x = (i % 10) as f32;
+                let y = ((i / 10) % 10) as f32;
+                let z = (i / 100) as f32;
+                Aabb::new(Vec3A::new(x, y, z), Vec3A::new(x + 0.5, y + 0.5, z + 0.5))
+            })
+            .collect()
+    }
+
+    /// A row of costs in 1 to 8 slots as the plan makes them: never rising with more slots,
+    /// with repeats (a subtree that gains nothing from another slot) and, for a leaf, one
+    /// value throughout.
+    fn cost_row() -> impl proptest::strategy::Strategy<Value = [f64; 8]> {
+        use proptest::prelude::*;
+        (prop::array::uniform8(0u8..4), 1.0f64..1e6, any::<bool>()).prop_map(
+            |(drops, start, constant)| {
+                let mut row = [start; 8];
+                for j in 1..8 {
+                    let step = if constant {
+                        0.0
+                    } else {
+                        f64::from(drops[j]) * 0.125
+                    };
+                    row[j] = row[j - 1] * (1.0 - step * 0.5);
+                }
+                row
+            },
+        )
+    }
+
+    proptest::proptest! {
+        /// The shortcut for a left leaf gives what the plain loop over every split gives,
+        /// costs and the left child's slots alike (the trees come out the same).
+        #[test]
+        fn distributing_slots_matches_trying_every_split(
+            left in cost_row(),
+            right in cost_row(),
+            leaf_cost in 1.0f64..1e6,
+        ) {
+            let plain = |left: &[f64; 8]| -> [(f64, u8); 8] {
+                std::array::from_fn(|j| {
+                    let mut best = (f64::INFINITY, 0u8);
+                    for k in 1..=j {
+                        let cost = left[k - 1] + right[j - k];
+                        if cost < best.0 {
+                            best = (cost, k as u8);
+                        }
+                    }
+                    best
+                })
+            };
+            let leaf = [leaf_cost; 8];
+            proptest::prop_assert_eq!(distribute(&leaf, &right, true), plain(&leaf));
+            proptest::prop_assert_eq!(distribute(&left, &right, false), plain(&left));
+        }
+    }
+
+    /// Boxes far apart enough that their areas overflow f32 (a mesh spanning 1e30 units)
+    /// still make a tree of leaves of at most eight: the builder once chose a leaf of every
+    /// primitive below a node whose cost had become infinite, and panicked emitting it.
+    #[test]
+    fn boxes_whose_areas_overflow_f32_still_build() {
+        let b: Vec<Aabb> = (0..300)
+            .map(|i| {
+                let x = 1.3f32.powi(i);
+                Aabb::new(Vec3A::new(x, -x, -x), Vec3A::new(1.1 * x, x, x))
+            })
+            .collect();
+        assert!(b[299].half_area().is_infinite());
+        let t = build(&b, MAX_LEAF);
+        assert!(validate_tree(&t.nodes, b.len()).is_ok());
+        let mut order = t.order.clone();
+        order.sort();
+        assert_eq!(order, (0..300).collect::<Vec<u32>>());
+    }
+
+    /// Boxes from a fixed generator: `n` boxes of random size around random points, at
+    /// `offset` from the origin and spread over `spread` units.
+    fn scattered(n: usize, offset: f32, spread: f32, seed: u64) -> Vec<Aabb> {
+        let mut state = seed;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        (0..n)
+            .map(|_| {
+                let c = Vec3A::new(next(), next(), next()) * spread + Vec3A::splat(offset);
+                let h = Vec3A::new(next(), next(), next()) * spread * 0.01;
+                Aabb::new(c - h, c + h)
+            })
+            .collect()
+    }
+
+    /// The binned build's binary tree: every box in exactly one leaf of at most the leaf
+    /// size, each node's box exactly its children's (or its leaf's boxes') union, and the
+    /// same tree from the same boxes. Cases: many boxes (binned), few (split exactly), all
+    /// at one point (no axis to split along), and far from the origin over a few units
+    /// (coordinates whole numbers, bins placed by a rounded offset).
+    #[test]
+    fn binned_trees_hold_every_box_once_in_exact_bounds() {
+        let cases = [
+            scattered(5000, 0.0, 100.0, 1),
+            scattered(7, -3.0, 1.0, 2),
+            vec![Aabb::new(Vec3A::splat(1.0), Vec3A::splat(2.0)); 300],
+            scattered(300, 1.0e7, 8.0, 3),
+        ];
+        for (case, b) in cases.iter().enumerate() {
+            for max_leaf in [1, 4, MAX_LEAF] {
+                let (mut t, mut again) = (Bvh2::default(), Bvh2::default());
+                let mut scratch = SahScratch::default();
+                binned_sah(b, max_leaf, &mut t, &mut scratch);
+                binned_sah(b, max_leaf, &mut again, &mut scratch);
+                let same = |x: &Bvh2, y: &Bvh2| {
+                    x.primitive_indices == y.primitive_indices
+                        && x.nodes.len() == y.nodes.len()
+                        && x.nodes.iter().zip(&y.nodes).all(|(m, n)| {
+                            (m.aabb.min, m.aabb.max, m.prim_count, m.first_index)
+                                == (n.aabb.min, n.aabb.max, n.prim_count, n.first_index)
+                        })
+                };
+                assert!(same(&t, &again), "case {case}: not deterministic");
+                let mut seen = vec![0; b.len()];
+                let mut work = vec![0usize];
+                while let Some(i) = work.pop() {
+                    let node = &t.nodes[i];
+                    let union = if node.prim_count != 0 {
+                        assert!(node.prim_count as usize <= SAH_LEAF.min(max_leaf as usize));
+                        let first = node.first_index as usize;
+                        let mut u = Aabb::INVALID;
+                        for &p in &t.primitive_indices[first..first + node.prim_count as usize] {
+                            seen[p as usize] += 1;
+                            u = u.union(&b[p as usize]);
+                        }
+                        u
+                    } else {
+                        let l = node.first_index as usize;
+                        work.extend([l, l + 1]);
+                        t.nodes[l].aabb.union(&t.nodes[l + 1].aabb)
+                    };
+                    assert_eq!(
+                        (union.min, union.max),
+                        (node.aabb.min, node.aabb.max),
+                        "case {case}"
+                    );
+                }
+                assert!(
+                    seen.iter().all(|&s| s == 1),
+                    "case {case}: boxes not once each"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn every_primitive_is_in_exactly_one_leaf() {
+        for n in [1, 2, 3, 4, 5, 9, 100, 1000] {
+            let t = build(&boxes(n), MAX_LEAF);
+            assert!(validate_tree(&t.nodes, n).is_ok(), "{n} boxes");
+            let mut seen = vec![0; n];
+            for &p in &t.order {
+                seen[p as usize] += 1;
+            }
+            assert!(seen.iter().all(|&s| s == 1), "{n} boxes");
+            let mut covered = vec![0; n];
+            for node in &t.nodes {
+                for &r in node {
+                    if let Child::Leaf { first, count } = child(r) {
+                        for i in first..first + count {
+                            covered[i as usize] += 1;
+                        }
+                    }
+                }
+            }
+            assert!(covered.iter().all(|&c| c == 1), "{n} boxes");
+        }
+    }
+
+    /// The expected cost of the subtree at node `i` under the collapse's heuristic (areas
+    /// times costs, as the collapse sums them), and its box.
+    fn wide_cost(t: &WideTree, boxes: &[Aabb], i: usize) -> (f64, Aabb) {
+        let mut cost = 0.0;
+        let mut bounds = Aabb::empty();
+        for &r in &t.nodes[i] {
+            match child(r) {
+                Child::Empty => {}
+                Child::Node(n) => {
+                    let (c, b) = wide_cost(t, boxes, n as usize);
+                    cost += c;
+                    bounds = bounds.union(&b);
+                }
+                Child::Leaf { first, count } => {
+                    let mut b = Aabb::empty();
+                    for p in &t.order[first as usize..(first + count) as usize] {
+                        b = b.union(&boxes[*p as usize]);
+                    }
+                    cost += half_area_f64(&b) * leaf_cost(count);
+                    bounds = bounds.union(&b);
+                }
+            }
+        }
+        (cost + half_area_f64(&bounds) * NODE_COST, bounds)
+    }
+
+    /// The top-level tree holds every chunk box in a leaf of its own, and the search for it
+    /// finds a cheaper tree than the chunks' builder makes over the same boxes (a grid, and
+    /// clusters of overlapping boxes of many sizes, as chunks of meshes of many sizes are).
+    #[test]
+    fn the_top_level_tree_holds_every_box_once_and_costs_no_more() {
+        let mut r = crate::testing::Lcg(7);
+        let clusters: Vec<Aabb> = (0..400)
+            .map(|_| {
+                let c = Vec3A::new(r.next(), r.next(), r.next() * 0.2) * 100.0;
+                let size = Vec3A::new(r.next(), r.next(), r.next()) * (1.0 + 20.0 * r.next());
+                Aabb::new(c - size, c + size)
+            })
+            .collect();
+        for set in [boxes(1), boxes(7), boxes(300), clusters] {
+            let n = set.len();
+            let top = build_top(&set);
+            assert!(validate_tree(&top.nodes, n).is_ok(), "{n} boxes");
+            let mut seen = vec![0; n];
+            for node in &top.nodes {
+                for &r in node {
+                    if let Child::Leaf { first, count } = child(r) {
+                        assert_eq!(count, 1, "{n} boxes: one chunk a leaf");
+                        seen[top.order[first as usize] as usize] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&s| s == 1), "{n} boxes");
+            let (top_cost, _) = wide_cost(&top, &set, 0);
+            let (plain_cost, _) = wide_cost(&build(&set, 1), &set, 0);
+            // A few boxes leave no choice; over hundreds the search must find a cheaper tree.
+            if n < 100 {
+                assert_eq!(top_cost, plain_cost, "{n} boxes");
+            } else {
+                assert!(
+                    top_cost < plain_cost,
+                    "{n} boxes: {top_cost} >= {plain_cost}"
+                );
+            }
+        }
+    }
+
+    /// Every count a leaf may hold, at the lowest and highest first primitive, reads back as
+    /// written; what does not fit is refused, not wrapped.
+    #[test]
+    fn leaf_references_read_back() {
+        for count in 1..=MAX_LEAF {
+            for first in [0, 1, (1 << 28) - 2] {
+                let r = leaf(first, count).unwrap();
+                assert_eq!(child(r), Child::Leaf { first, count });
+            }
+        }
+        assert_eq!(leaf((1 << 28) - 1, MAX_LEAF), None);
+        assert_eq!(leaf(0, 0), None);
+        assert_eq!(leaf(0, MAX_LEAF + 1), None);
+        assert_eq!(leaf(1 << 28, 1), None);
+    }
+
+    #[test]
+    fn corrupt_trees_are_refused() {
+        let t = build(&boxes(300), 4);
+        let mut nodes = t.nodes.clone();
+        nodes[0][0] = 10_000;
+        assert!(matches!(
+            validate_tree(&nodes, 300),
+            Err(NodeError::ChildOutOfRange { .. })
+        ));
+        let mut nodes = t.nodes.clone();
+        nodes[0][1] = 0;
+        assert_eq!(validate_tree(&nodes, 300), Err(NodeError::TooDeep));
+        let mut nodes = t.nodes.clone();
+        nodes[0][2] = leaf(299, 4).unwrap();
+        assert!(matches!(
+            validate_tree(&nodes, 300),
+            Err(NodeError::PrimitiveOutOfRange { .. })
+        ));
     }
 }
