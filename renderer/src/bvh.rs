@@ -531,11 +531,7 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
     let mut nodes = std::mem::take(&mut out.nodes);
     nodes.clear();
     nodes.push(Default::default());
-    let (mut bounds, mut cb) = (Aabb::INVALID, Aabb::INVALID);
-    for (b, &c) in boxes.iter().zip(centres) {
-        bounds = bounds.union(b);
-        cb.extend(c);
-    }
+    let (bounds, cb) = bounds_of(boxes, centres, &prims);
     let work = &mut scratch.work;
     work.clear();
     work.push(SahTask {
@@ -561,7 +557,8 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
         if count <= SAH_SWEEP_MAX || extent.max_element() <= 0.0 {
             // Exact: along each axis, the boxes in order of their centres, every split tried.
             let mut best = (f64::INFINITY, 0usize, count / 2);
-            let mut order = [0u64; SAH_SWEEP_MAX];
+            // The best axis's order so far, kept rather than sorted again.
+            let (mut order, mut best_order) = ([0u64; SAH_SWEEP_MAX], [0u64; SAH_SWEEP_MAX]);
             let mut suffix = [0.0f64; SAH_SWEEP_MAX];
             let sweep = count <= SAH_SWEEP_MAX;
             for a in 0..3 {
@@ -587,30 +584,19 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
                         best = (cost, a, k + 1);
                     }
                 }
+                if best.1 == a && best.0.is_finite() {
+                    best_order[..count].copy_from_slice(order);
+                }
             }
             if best.0.is_finite() {
-                let a = best.1;
-                let order = &mut order[..count];
-                for (o, &p) in order.iter_mut().zip(slice.iter()) {
-                    *o = sort_key(centres[p as usize][a], p);
-                }
-                insertion_sort(order);
-                for (p, o) in slice.iter_mut().zip(order.iter()) {
+                for (p, o) in slice.iter_mut().zip(&best_order[..count]) {
                     *p = *o as u32;
                 }
             }
             let at = best.2;
             mid = t.start + at;
-            let part = |s: &[u32]| {
-                let (mut b, mut c) = (Aabb::INVALID, Aabb::INVALID);
-                for &p in s {
-                    b = b.union(&boxes[p as usize]);
-                    c.extend(centres[p as usize]);
-                }
-                (b, c)
-            };
-            left = part(&slice[..at]);
-            right = part(&slice[at..]);
+            left = bounds_of(boxes, centres, &slice[..at]);
+            right = bounds_of(boxes, centres, &slice[at..]);
         } else {
             let bins = (4 + count / 20).min(SAH_BINS);
             let scale = Vec3A::select(
@@ -689,16 +675,8 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
                 right = (union(&bin_box[a][k + 1..bins]), rc);
             } else {
                 i = count / 2;
-                let part = |s: &[u32]| {
-                    let (mut b, mut c) = (Aabb::INVALID, Aabb::INVALID);
-                    for &p in s {
-                        b = b.union(&boxes[p as usize]);
-                        c.extend(centres[p as usize]);
-                    }
-                    (b, c)
-                };
-                left = part(&slice[..i]);
-                right = part(&slice[i..]);
+                left = bounds_of(boxes, centres, &slice[..i]);
+                right = bounds_of(boxes, centres, &slice[i..]);
             }
             mid = t.start + i;
         }
@@ -726,6 +704,16 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
         primitive_indices: prims,
         ..Default::default()
     };
+}
+
+/// The union of the boxes `prims` and the bounds of their centres.
+fn bounds_of(boxes: &[Aabb], centres: &[glam::Vec3A], prims: &[u32]) -> (Aabb, Aabb) {
+    let (mut b, mut c) = (Aabb::INVALID, Aabb::INVALID);
+    for &p in prims {
+        b = b.union(&boxes[p as usize]);
+        c.extend(centres[p as usize]);
+    }
+    (b, c)
 }
 
 /// A box's place in a sort by centre along one axis, then by index: the float's bits made
