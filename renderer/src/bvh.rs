@@ -14,7 +14,7 @@
 //! and Laine, "Efficient Incoherent Ray Traversal on GPUs Through Compressed Wide BVHs",
 //! 2017): for every binary node and every number of slots from one to eight, the cheapest
 //! way to represent its subtree in that many child slots, each slot a leaf of up to eight
-//! primitives (one four-lane test, or two for more than four) or a wide node.
+//! primitives (one block of four triangles, or two for more than four) or a wide node.
 //! Deterministic: obvhs is used without its parallel feature, the binned build sorts and
 //! bins in a fixed order, and ties keep the first choice, so the same boxes give the same
 //! tree.
@@ -39,7 +39,7 @@ pub const EMPTY: u32 = u32::MAX;
 /// The bit that marks a leaf child.
 pub const LEAF: u32 = 1 << 31;
 
-/// Most primitives in one leaf: two four-lane triangle tests.
+/// Most primitives in one leaf: two blocks of four triangles.
 pub const MAX_LEAF: u32 = 8;
 
 /// A leaf child reference, or `None` when `first` does not fit (or the two would spell
@@ -85,9 +85,10 @@ pub struct WideTree {
 const NODE_COST: f64 = 1.0;
 const LEAF_COST: f64 = 1.0;
 
-/// What a leaf's second four-lane test (five to eight primitives) adds to its cost: less
-/// than the first, as the two tests do not wait for each other, where each node test on the
-/// way down waits for the one before. Measured on the 1M-triangle landscape of
+/// What a leaf's second block (five to eight primitives) adds to its cost: less than the
+/// first, as closest-hit queries test both blocks in one eight-lane pass (and before that in
+/// two four-lane tests that did not wait for each other, where each node test on the way
+/// down waits for the one before). Measured on the 1M-triangle landscape of
 /// `bench/peers/embree.py` (`bench/rays_ab.py` against leaves of at most four): with 0.25,
 /// random rays 4 to 8% faster but diffuse ones 3 to 4% slower (a ray leaving a surface
 /// starts inside more, larger leaf boxes); with 0.5, random 5 to 9% faster and the other
@@ -491,7 +492,7 @@ pub enum Visit {
 const SAH_BINS: usize = 32;
 
 /// Ranges of at most this many boxes (and at most the wide tree's largest leaf) are leaves of
-/// the binary tree: one four-lane test, which the collapse would not split.
+/// the binary tree: one block of four triangles, which the collapse would not split.
 const SAH_LEAF: usize = 4;
 
 /// At most this many boxes are split by sorting their centres along each axis and trying

@@ -190,6 +190,43 @@ mod imp {
         }
     }
 
+    impl F32x8 {
+        /// Lanes 0 to 3 from `lo`, 4 to 7 from `hi`.
+        #[inline(always)]
+        pub fn load_halves(lo: &[f32; 4], hi: &[f32; 4]) -> F32x8 {
+            unsafe { F32x8(_mm256_loadu2_m128(hi.as_ptr(), lo.as_ptr())) }
+        }
+        #[inline(always)]
+        pub fn zero() -> F32x8 {
+            unsafe { F32x8(_mm256_setzero_ps()) }
+        }
+        /// `c - self * b`, rounded once.
+        #[inline(always)]
+        pub fn neg_mul_add(self, b: F32x8, c: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_fnmadd_ps(self.0, b.0, c.0)) }
+        }
+        /// As [`F32x4::signs_differ`].
+        #[inline(always)]
+        pub fn signs_differ(self, b: F32x8, c: F32x8) -> u32 {
+            unsafe {
+                let d = _mm256_or_ps(_mm256_xor_ps(self.0, b.0), _mm256_xor_ps(self.0, c.0));
+                _mm256_movemask_ps(d) as u32
+            }
+        }
+        /// The lanes with their sign bit flipped where `sign` has it set.
+        #[inline(always)]
+        pub fn xor_sign(self, sign: F32x8) -> F32x8 {
+            unsafe {
+                let bit = _mm256_and_ps(sign.0, _mm256_set1_ps(-0.0));
+                F32x8(_mm256_xor_ps(self.0, bit))
+            }
+        }
+        #[inline(always)]
+        pub fn ne(self, b: F32x8) -> M8 {
+            unsafe { M8(_mm256_cmp_ps::<_CMP_NEQ_UQ>(self.0, b.0)) }
+        }
+    }
+
     impl F32x4 {
         #[inline(always)]
         pub fn load(a: &[f32; 4]) -> F32x4 {
@@ -454,6 +491,32 @@ mod imp {
                 pub fn mul(self, b: $t) -> $t {
                     $t(std::array::from_fn(|i| self.0[i] * b.0[i]))
                 }
+                #[inline(always)]
+                pub fn zero() -> $t {
+                    $t([0.0; $n])
+                }
+                #[inline(always)]
+                pub fn neg_mul_add(self, b: $t, c: $t) -> $t {
+                    $t(std::array::from_fn(|i| {
+                        (-self.0[i]).mul_add(b.0[i], c.0[i])
+                    }))
+                }
+                #[inline(always)]
+                pub fn signs_differ(self, b: $t, c: $t) -> u32 {
+                    (0..$n)
+                        .map(|i| {
+                            let (x, y, z) =
+                                (self.0[i].to_bits(), b.0[i].to_bits(), c.0[i].to_bits());
+                            (((x ^ y) | (x ^ z)) >> 31) << i
+                        })
+                        .fold(0, |m, b| m | b)
+                }
+                #[inline(always)]
+                pub fn xor_sign(self, sign: $t) -> $t {
+                    $t(std::array::from_fn(|i| {
+                        f32::from_bits(self.0[i].to_bits() ^ (sign.0[i].to_bits() & 0x8000_0000))
+                    }))
+                }
             }
         };
     }
@@ -516,6 +579,17 @@ mod imp {
             self.cmp(b, |x, y| x == y)
         }
         #[inline(always)]
+        pub fn ne(self, b: F32x8) -> M8 {
+            self.cmp(b, |x, y| x != y)
+        }
+        /// Lanes 0 to 3 from `lo`, 4 to 7 from `hi`.
+        #[inline(always)]
+        pub fn load_halves(lo: &[f32; 4], hi: &[f32; 4]) -> F32x8 {
+            F32x8(std::array::from_fn(
+                |i| if i < 4 { lo[i] } else { hi[i - 4] },
+            ))
+        }
+        #[inline(always)]
         pub fn add(self, b: F32x8) -> F32x8 {
             self.zip(b, |x, y| x + y)
         }
@@ -576,10 +650,6 @@ mod imp {
 
     impl F32x4 {
         #[inline(always)]
-        pub fn zero() -> F32x4 {
-            F32x4([0.0; 4])
-        }
-        #[inline(always)]
         pub fn add(self, b: F32x4) -> F32x4 {
             F32x4(std::array::from_fn(|i| self.0[i] + b.0[i]))
         }
@@ -590,27 +660,6 @@ mod imp {
         #[inline(always)]
         pub fn div(self, b: F32x4) -> F32x4 {
             F32x4(std::array::from_fn(|i| self.0[i] / b.0[i]))
-        }
-        #[inline(always)]
-        pub fn neg_mul_add(self, b: F32x4, c: F32x4) -> F32x4 {
-            F32x4(std::array::from_fn(|i| {
-                (-self.0[i]).mul_add(b.0[i], c.0[i])
-            }))
-        }
-        #[inline(always)]
-        pub fn signs_differ(self, b: F32x4, c: F32x4) -> u32 {
-            (0..4)
-                .map(|i| {
-                    let (x, y, z) = (self.0[i].to_bits(), b.0[i].to_bits(), c.0[i].to_bits());
-                    (((x ^ y) | (x ^ z)) >> 31) << i
-                })
-                .fold(0, |m, b| m | b)
-        }
-        #[inline(always)]
-        pub fn xor_sign(self, sign: F32x4) -> F32x4 {
-            F32x4(std::array::from_fn(|i| {
-                f32::from_bits(self.0[i].to_bits() ^ (sign.0[i].to_bits() & 0x8000_0000))
-            }))
         }
         #[inline(always)]
         pub fn abs(self) -> F32x4 {
@@ -711,6 +760,144 @@ mod imp {
 }
 
 pub use imp::{F32x4, F32x8, M4, M8, U32x8};
+
+/// The operations of the watertight triangle test, for four lanes (one block of triangles) and
+/// eight (two blocks tested at once): the test is written once against this, and each width
+/// runs it as the inherent methods above (one instruction an operation with AVX2).
+pub trait TriLanes: Copy {
+    type Mask: LaneMask;
+    fn splat(x: f32) -> Self;
+    fn zero() -> Self;
+    fn add(self, b: Self) -> Self;
+    fn sub(self, b: Self) -> Self;
+    fn mul(self, b: Self) -> Self;
+    fn div(self, b: Self) -> Self;
+    /// `self * b + c`, rounded once.
+    fn mul_add(self, b: Self, c: Self) -> Self;
+    /// `c - self * b`, rounded once.
+    fn neg_mul_add(self, b: Self, c: Self) -> Self;
+    /// Bit i set when lanes i of `self`, `b` and `c` do not all have the same sign bit.
+    fn signs_differ(self, b: Self, c: Self) -> u32;
+    /// The lanes with their sign bit flipped where `sign` has it set.
+    fn xor_sign(self, sign: Self) -> Self;
+    fn abs(self) -> Self;
+    fn max(self, b: Self) -> Self;
+    fn lt(self, b: Self) -> Self::Mask;
+    fn gt(self, b: Self) -> Self::Mask;
+    fn eq(self, b: Self) -> Self::Mask;
+    fn ne(self, b: Self) -> Self::Mask;
+    /// The lanes as an array (each written, none zeroed first).
+    type Array: Copy + std::ops::Index<usize, Output = f32> + std::ops::IndexMut<usize>;
+    fn to_array(self) -> Self::Array;
+}
+
+/// A [`TriLanes`] comparison's mask.
+pub trait LaneMask: Copy {
+    fn bits(self) -> u32;
+    fn and(self, b: Self) -> Self;
+    fn or(self, b: Self) -> Self;
+    fn not(self) -> Self;
+}
+
+macro_rules! tri_lanes {
+    ($t:ident, $m:ident) => {
+        impl TriLanes for $t {
+            type Mask = $m;
+            #[inline(always)]
+            fn splat(x: f32) -> $t {
+                $t::splat(x)
+            }
+            #[inline(always)]
+            fn zero() -> $t {
+                $t::zero()
+            }
+            #[inline(always)]
+            fn add(self, b: $t) -> $t {
+                $t::add(self, b)
+            }
+            #[inline(always)]
+            fn sub(self, b: $t) -> $t {
+                $t::sub(self, b)
+            }
+            #[inline(always)]
+            fn mul(self, b: $t) -> $t {
+                $t::mul(self, b)
+            }
+            #[inline(always)]
+            fn div(self, b: $t) -> $t {
+                $t::div(self, b)
+            }
+            #[inline(always)]
+            fn mul_add(self, b: $t, c: $t) -> $t {
+                $t::mul_add(self, b, c)
+            }
+            #[inline(always)]
+            fn neg_mul_add(self, b: $t, c: $t) -> $t {
+                $t::neg_mul_add(self, b, c)
+            }
+            #[inline(always)]
+            fn signs_differ(self, b: $t, c: $t) -> u32 {
+                $t::signs_differ(self, b, c)
+            }
+            #[inline(always)]
+            fn xor_sign(self, sign: $t) -> $t {
+                $t::xor_sign(self, sign)
+            }
+            #[inline(always)]
+            fn abs(self) -> $t {
+                $t::abs(self)
+            }
+            #[inline(always)]
+            fn max(self, b: $t) -> $t {
+                $t::max(self, b)
+            }
+            #[inline(always)]
+            fn lt(self, b: $t) -> $m {
+                $t::lt(self, b)
+            }
+            #[inline(always)]
+            fn gt(self, b: $t) -> $m {
+                $t::gt(self, b)
+            }
+            #[inline(always)]
+            fn eq(self, b: $t) -> $m {
+                $t::eq(self, b)
+            }
+            #[inline(always)]
+            fn ne(self, b: $t) -> $m {
+                $t::ne(self, b)
+            }
+            type Array = [f32; size_of::<$t>() / 4];
+            #[inline(always)]
+            fn to_array(self) -> Self::Array {
+                let mut a = [0.0; size_of::<$t>() / 4];
+                self.store(&mut a);
+                a
+            }
+        }
+
+        impl LaneMask for $m {
+            #[inline(always)]
+            fn bits(self) -> u32 {
+                $m::bits(self)
+            }
+            #[inline(always)]
+            fn and(self, b: $m) -> $m {
+                $m::and(self, b)
+            }
+            #[inline(always)]
+            fn or(self, b: $m) -> $m {
+                $m::or(self, b)
+            }
+            #[inline(always)]
+            fn not(self) -> $m {
+                $m::not(self)
+            }
+        }
+    };
+}
+tri_lanes!(F32x4, M4);
+tri_lanes!(F32x8, M8);
 
 /// `far` moved `ulps` units in the last place up, read as a signed integer and moved back
 /// (for `far` not negative; a negative `far` stays negative, below every distance).

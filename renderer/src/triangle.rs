@@ -28,9 +28,9 @@ pub fn intersect(q: &RayQuery, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmax: f32) -> Op
 /// Returns the hit with `0 < t <= tmax`, if any: the closest-hit kernel admits a hit at
 /// exactly the best distance so far, to break the tie by triangle index.
 ///
-/// The operations are those of the four-lane kernel ([`crate::accel`]), in the same order
+/// The operations are those of the lane kernel ([`crate::accel`]), in the same order
 /// and with the same fused multiply-adds, so the two give the same bits: the kernel filters
-/// four triangles at once and this function makes the final decision for a candidate. The
+/// four or eight triangles at once and this function makes the final decision for a candidate. The
 /// shear of each vertex may be fused (it is the same computation for a vertex in every
 /// triangle that shares it); the edge functions must not be, or the two triangles of an
 /// edge would no longer compute exactly opposite values for it.
