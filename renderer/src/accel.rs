@@ -20,8 +20,8 @@
 //! relative to the distance itself, which computing far distances with a slightly larger
 //! inverse direction covers.
 //! Triangles are tested by the watertight algorithm ([`triangle`]) four or eight at a time
-//! with the same operations as the scalar test, which then confirms the nearest candidate and applies
-//! the rounding bound on its distance.
+//! with the same operations as the scalar test, which then confirms the nearest candidate
+//! and applies the rounding bound on its distance.
 //!
 //! Closest hits are unique among the triangles a walk tests: equal distances are decided by
 //! (chunk, triangle) index, not by the order in which the walk meets them. One gap remains: a
@@ -1218,8 +1218,8 @@ impl<V: TriLanes> Lanes<V> {
 }
 
 /// The triangles a leaf's test reads: one block in four lanes, or a leaf's two blocks in
-/// eight, tested at once (one pass of the test instead of two: 2 to 3% fewer instructions a
-/// query on the landscape of `bench/peers/embree.py`).
+/// eight, tested at once (one pass of the test instead of two: 1 to 3% fewer instructions a
+/// closest-hit query on the landscape of `bench/peers/embree.py`).
 trait Blocks: Copy {
     type V: TriLanes;
     /// Lanes: four a block.
