@@ -1220,10 +1220,12 @@ impl<V: TriLanes> Lanes<V> {
 /// The triangles a leaf's test reads: one block in four lanes, or a leaf's two blocks in
 /// eight, tested at once (one pass of the test instead of two: 1 to 3% fewer instructions a
 /// closest-hit query on the landscape of `bench/peers/embree.py`).
-trait Blocks: Copy {
+trait Blocks<'a>: Copy {
     type V: TriLanes;
     /// Lanes: four a block.
     const LANES: usize;
+    /// The blocks themselves (the scalar test of undecided lanes takes them one by one).
+    fn blocks(self) -> &'a [Tri4];
     /// Row `row` (`3 * vertex + axis`) of the vertex coordinates, lane by lane.
     ///
     /// # Safety
@@ -1233,23 +1235,31 @@ trait Blocks: Copy {
     fn id(self, lane: usize) -> u32;
 }
 
-impl Blocks for &Tri4 {
+impl<'a> Blocks<'a> for &'a [Tri4; 1] {
     type V = F32x4;
     const LANES: usize = 4;
     #[inline(always)]
+    fn blocks(self) -> &'a [Tri4] {
+        self
+    }
+    #[inline(always)]
     unsafe fn row(self, row: usize) -> F32x4 {
         // SAFETY: the caller keeps `row` below 9.
-        F32x4::load(unsafe { self.p.get_unchecked(row) })
+        F32x4::load(unsafe { self[0].p.get_unchecked(row) })
     }
     #[inline(always)]
     fn id(self, lane: usize) -> u32 {
-        self.id[lane & 3]
+        self[0].id[lane & 3]
     }
 }
 
-impl Blocks for [&Tri4; 2] {
+impl<'a> Blocks<'a> for &'a [Tri4; 2] {
     type V = F32x8;
     const LANES: usize = 8;
+    #[inline(always)]
+    fn blocks(self) -> &'a [Tri4] {
+        self
+    }
     #[inline(always)]
     unsafe fn row(self, row: usize) -> F32x8 {
         // SAFETY: the caller keeps `row` below 9.
@@ -1265,7 +1275,7 @@ impl Blocks for [&Tri4; 2] {
 /// [`triangle::intersect_upto`] does it. A function of its own, inlined always: as a closure
 /// it was left out of line where the triangle test was inlined into a larger walk.
 #[inline(always)]
-fn tri_vertex<B: Blocks>(
+fn tri_vertex<'a, B: Blocks<'a>>(
     q: &RayQuery,
     b: B,
     origin: &[f32; 3],
@@ -1291,7 +1301,7 @@ fn tri_vertex<B: Blocks>(
 /// A block's triangles against one ray: the operations of [`triangle::intersect_upto`], in
 /// the same order, lane by lane, so each lane gives the same bits as the scalar test.
 #[inline(always)]
-fn test_tris<B: Blocks>(q: &RayQuery, b: B, tmax: f32) -> Lanes<B::V> {
+fn test_tris<'a, B: Blocks<'a>>(q: &RayQuery, b: B, tmax: f32) -> Lanes<B::V> {
     let lanes_of = |m: u32| m & ((1 << B::LANES) - 1);
     // The origin and axes once for the three vertices (read in each, the queries took 2 to
     // 3% more instructions).
@@ -1409,20 +1419,21 @@ fn closest_in_leaf<A: FnMut(u32, &TriHit) -> bool>(
     best: &mut Closest,
     accept: &mut A,
 ) -> bool {
-    match blocks {
-        [b] => closest_in_blocks(q, b, blocks, tris, chunk, best, accept),
-        [b0, b1] => closest_in_blocks(q, [b0, b1], blocks, tris, chunk, best, accept),
-        _ => false,
+    if let Ok(one) = <&[Tri4; 1]>::try_from(blocks) {
+        closest_in_blocks(q, one, tris, chunk, best, accept)
+    } else if let Ok(two) = <&[Tri4; 2]>::try_from(blocks) {
+        closest_in_blocks(q, two, tris, chunk, best, accept)
+    } else {
+        false
     }
 }
 
-/// [`closest_in_leaf`] for its blocks `b` (`blocks` as lanes). Only the winning lane's hit is
-/// put together.
+/// [`closest_in_leaf`] for its blocks `b`, in lanes. Only the winning lane's hit is put
+/// together.
 #[inline(always)]
-fn closest_in_blocks<B: Blocks, A: FnMut(u32, &TriHit) -> bool>(
+fn closest_in_blocks<'a, B: Blocks<'a>, A: FnMut(u32, &TriHit) -> bool>(
     q: &RayQuery,
     b: B,
-    blocks: &[Tri4],
     tris: u32,
     chunk: u32,
     best: &mut Closest,
@@ -1431,7 +1442,7 @@ fn closest_in_blocks<B: Blocks, A: FnMut(u32, &TriHit) -> bool>(
     let lanes = test_tris(q, b, best.t);
     if lanes.undecided != 0 {
         let mut found = false;
-        for block in blocks {
+        for block in b.blocks() {
             found |= closest_in_undecided_block(q, block, tris, chunk, best, accept);
         }
         return found;
@@ -1468,7 +1479,8 @@ fn closest_in_undecided_block<A: FnMut(u32, &TriHit) -> bool>(
     best: &mut Closest,
     accept: &mut A,
 ) -> bool {
-    let lanes = test_tris(q, block, best.t);
+    let one = std::array::from_ref(block);
+    let lanes = test_tris(q, one, best.t);
     let mut left = lanes.hits | lanes.undecided;
     let mut t = lanes.distances();
     let mut exact: [Option<TriHit>; 4] = [None; 4];
@@ -1486,7 +1498,7 @@ fn closest_in_undecided_block<A: FnMut(u32, &TriHit) -> bool>(
         }
     }
     take_nearest(
-        block,
+        one,
         tris,
         chunk,
         best,
@@ -1502,7 +1514,7 @@ fn closest_in_undecided_block<A: FnMut(u32, &TriHit) -> bool>(
 /// (ties to the lower triangle index) becomes `best` if it beats it; true if one did.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn take_nearest<B: Blocks, A: FnMut(u32, &TriHit) -> bool>(
+fn take_nearest<'a, B: Blocks<'a>, A: FnMut(u32, &TriHit) -> bool>(
     b: B,
     tris: u32,
     chunk: u32,
@@ -1557,34 +1569,16 @@ fn hits_in_leaf<F: FnMut(u32, TriHit) -> Visit>(
     tmax: f32,
     f: &mut F,
 ) -> Visit {
-    hits_in_blocks(q, block, std::slice::from_ref(block), tris, tmax, f)
-}
-
-/// [`hits_in_leaf`] for its blocks `b` (`blocks` as lanes).
-#[inline(always)]
-fn hits_in_blocks<B: Blocks, F: FnMut(u32, TriHit) -> Visit>(
-    q: &RayQuery,
-    b: B,
-    blocks: &[Tri4],
-    tris: u32,
-    tmax: f32,
-    f: &mut F,
-) -> Visit {
-    let lanes = test_tris(q, b, tmax);
+    let lanes = test_tris(q, std::array::from_ref(block), tmax);
     if lanes.undecided != 0 {
-        for block in blocks {
-            if hits_in_undecided_block(q, block, tris, tmax, f) == Visit::Stop {
-                return Visit::Stop;
-            }
-        }
-        return Visit::Continue;
+        return hits_in_undecided_block(q, block, tris, tmax, f);
     }
     if lanes.hits == 0 {
         return Visit::Continue;
     }
     let t = lanes.distances();
     report_each(
-        b,
+        block,
         tris,
         lanes.hits,
         f,
@@ -1604,7 +1598,7 @@ fn hits_in_undecided_block<F: FnMut(u32, TriHit) -> Visit>(
     tmax: f32,
     f: &mut F,
 ) -> Visit {
-    let lanes = test_tris(q, block, tmax);
+    let lanes = test_tris(q, std::array::from_ref(block), tmax);
     let t = lanes.distances();
     report_each(
         block,
@@ -1623,22 +1617,22 @@ fn hits_in_undecided_block<F: FnMut(u32, TriHit) -> Visit>(
     )
 }
 
-/// Calls `f` for the hit `hit(lane)` finds, if any, of each lane of `lanes` of `b`, each
-/// triangle once (unused lanes repeat their block's lane 0), until it says stop.
+/// Calls `f` for the hit `hit(lane)` finds, if any, of each lane of `lanes` of `block`, each
+/// triangle once (unused lanes repeat lane 0), until it says stop.
 #[inline(always)]
-fn report_each<B: Blocks, F: FnMut(u32, TriHit) -> Visit>(
-    b: B,
+fn report_each<F: FnMut(u32, TriHit) -> Visit>(
+    block: &Tri4,
     tris: u32,
     mut lanes: u32,
     f: &mut F,
     hit: impl Fn(usize) -> Option<TriHit>,
 ) -> Visit {
-    let mut reported = [u32::MAX; 8];
+    let mut reported = [u32::MAX; 4];
     while lanes != 0 {
-        let lane = lanes.trailing_zeros() as usize & (B::LANES - 1);
+        let lane = lanes.trailing_zeros() as usize & 3;
         lanes &= lanes - 1;
-        let tri = b.id(lane);
-        if tri >= tris || reported[..B::LANES].contains(&tri) {
+        let tri = block.id[lane];
+        if tri >= tris || reported.contains(&tri) {
             continue;
         }
         reported[lane] = tri;
@@ -1690,7 +1684,14 @@ impl Bvh8 {
         // only test that box again. Boxes only prune, so skipping one changes no hit.
         if let [b] = &self.leaves[..] {
             return q.is_finite()
-                && closest_in_blocks(q, b, &self.leaves, self.tris, chunk, best, &mut accept);
+                && closest_in_blocks(
+                    q,
+                    std::array::from_ref(b),
+                    self.tris,
+                    chunk,
+                    best,
+                    &mut accept,
+                );
         }
         self.closest_in(q, |_| chunk, |_| {}, best, |_, tri, hit| accept(tri, hit))
     }
@@ -1901,8 +1902,8 @@ mod tests {
             } else {
                 r.next() * 4.0
             };
-            let four = [0, 1].map(|b| test_tris(&q, &blocks[b], tmax));
-            let eight = test_tris(&q, [&blocks[0], &blocks[1]], tmax);
+            let four = [0, 1].map(|b| test_tris(&q, std::array::from_ref(&blocks[b]), tmax));
+            let eight = test_tris(&q, &blocks, tmax);
             let bits = |h: Option<TriHit>| h.map(|h| [h.t, h.b0, h.b1, h.b2].map(f32::to_bits));
             for (i, t) in tris.iter().enumerate() {
                 let scalar = triangle::intersect_upto(

@@ -158,39 +158,6 @@ mod imp {
                 )))
             }
         }
-    }
-
-    impl M8 {
-        /// Bit i set when lane i is true.
-        #[inline(always)]
-        pub fn bits(self) -> u32 {
-            unsafe { _mm256_movemask_ps(self.0) as u32 }
-        }
-        #[inline(always)]
-        pub fn and(self, b: M8) -> M8 {
-            unsafe { M8(_mm256_and_ps(self.0, b.0)) }
-        }
-        #[inline(always)]
-        pub fn or(self, b: M8) -> M8 {
-            unsafe { M8(_mm256_or_ps(self.0, b.0)) }
-        }
-        #[inline(always)]
-        pub fn not(self) -> M8 {
-            unsafe {
-                M8(_mm256_xor_ps(
-                    self.0,
-                    _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
-                ))
-            }
-        }
-        /// `a` where the mask is true, `b` elsewhere.
-        #[inline(always)]
-        pub fn select(self, a: F32x8, b: F32x8) -> F32x8 {
-            unsafe { F32x8(_mm256_blendv_ps(b.0, a.0, self.0)) }
-        }
-    }
-
-    impl F32x8 {
         /// Lanes 0 to 3 from `lo`, 4 to 7 from `hi`.
         #[inline(always)]
         pub fn load_halves(lo: &[f32; 4], hi: &[f32; 4]) -> F32x8 {
@@ -224,6 +191,36 @@ mod imp {
         #[inline(always)]
         pub fn ne(self, b: F32x8) -> M8 {
             unsafe { M8(_mm256_cmp_ps::<_CMP_NEQ_UQ>(self.0, b.0)) }
+        }
+    }
+
+    impl M8 {
+        /// Bit i set when lane i is true.
+        #[inline(always)]
+        pub fn bits(self) -> u32 {
+            unsafe { _mm256_movemask_ps(self.0) as u32 }
+        }
+        #[inline(always)]
+        pub fn and(self, b: M8) -> M8 {
+            unsafe { M8(_mm256_and_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn or(self, b: M8) -> M8 {
+            unsafe { M8(_mm256_or_ps(self.0, b.0)) }
+        }
+        #[inline(always)]
+        pub fn not(self) -> M8 {
+            unsafe {
+                M8(_mm256_xor_ps(
+                    self.0,
+                    _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+                ))
+            }
+        }
+        /// `a` where the mask is true, `b` elsewhere.
+        #[inline(always)]
+        pub fn select(self, a: F32x8, b: F32x8) -> F32x8 {
+            unsafe { F32x8(_mm256_blendv_ps(b.0, a.0, self.0)) }
         }
     }
 
