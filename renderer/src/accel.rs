@@ -17,8 +17,8 @@
 //! scale or distance from the origin. A plane distance is computed as
 //! `plane * inv_dir + offset` with `offset = -origin * inv_dir`; the rounding of `offset` is
 //! bounded by a slack folded into it per axis (see [`RayQuery`]), and what remains is
-//! relative to the distance itself, which computing far distances with a slightly larger
-//! inverse direction covers.
+//! relative to the distance itself, which comparing near distances a few units in the last
+//! place lowered covers.
 //! Triangles are tested by the watertight algorithm ([`triangle`]) four or eight at a time
 //! with the same operations as the scalar test, which then confirms the nearest candidate
 //! and applies the rounding bound on its distance.
@@ -906,16 +906,19 @@ const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 /// minimum where no far distance is negative and negative where one is, and a box whose far
 /// side is behind the origin is missed either way.
 ///
-/// Far distances come out widened, so that rounding never rejects a box the ray enters:
-/// they are computed with an inverse direction [`crate::ray::FAR_WIDEN`] (four units of
-/// `f32::EPSILON`) larger. A hit at distance t in the box lies between each axis's exact near
-/// and far distance; the computed near distance is at most t times (1 + EPSILON / 2) squared
-/// (the inverse direction's rounding and the fused multiply-add's; the offset's rounding is
-/// covered by its slack, see [`RayQuery`]), and the computed far one at least t times
-/// (1 + FAR_WIDEN) and three roundings of EPSILON / 2 down (those two and the larger
-/// inverse's), which is above the near one. So no addition waits on the far side, as it
-/// would to widen the far distance by units in the last place (that was one more step on
-/// the chain of every node).
+/// Near distances are compared lowered, so that rounding never rejects a box the ray enters:
+/// [`NEAR_SHRINK_ULPS`] units in the last place down, one integer subtraction. Near and far
+/// distances use the same inverse direction, each axis's rounded once (a factor of at most
+/// 1 + EPSILON / 2 either way), and the fused multiply-add rounds once more; the offsets'
+/// rounding is covered by their slack (see [`RayQuery`]). A hit at distance t in the box lies
+/// between each axis's exact near and far distance, so the computed near distance is at most
+/// t times (1 + EPSILON / 2) squared and the computed far one at least t times
+/// (1 - EPSILON / 2) squared: the near one exceeds the far one by under 2 EPSILON of it, at
+/// most four units in the last place, which the lowering covers with room to spare.
+/// Computing the far distances with a slightly larger inverse direction instead (which
+/// needs no step on the chain, as the subtraction is) took three more eight-lane constants
+/// per ray, kept in registers the leaf test needs; on the Zen 3 of 2026-12-07 the
+/// subtraction was 1 to 3% faster (README).
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, limit: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
@@ -926,13 +929,20 @@ fn test_node(q: &RayQuery, n: &Node8, limit: F32x8) -> (u32, F32x8) {
         F32x8::load(p).mul_add(inv[axis], off[axis])
     };
     let tn = [0, 1, 2].map(|k| plane(near[k], &q.inv8, &q.near_off8, k));
-    let tf = [0, 1, 2].map(|k| plane(far[k], &q.far_inv8, &q.far_off8, k));
+    let tf = [0, 1, 2].map(|k| plane(far[k], &q.inv8, &q.far_off8, k));
     let tnear = tn[0]
         .max_bits(tn[1])
         .max_bits(tn[2].max_bits(F32x8::splat(0.0)));
     let tfar = tf[0].min_bits(tf[1]).min_bits(tf[2].min_bits(limit));
-    (tnear.below_bits(tfar).bits() & 0xff, tnear)
+    (
+        tnear.less_ulps(NEAR_SHRINK_ULPS).below_bits(tfar).bits() & 0xff,
+        tnear,
+    )
 }
+
+/// How far [`test_node`] lowers near distances before comparing them with far ones, in
+/// units in the last place: twice the four that rounding can put between them.
+const NEAR_SHRINK_ULPS: i32 = 8;
 
 /// `tmax` as entry distances are compared with it (below it, as integers: [`test_node`] and
 /// the walk's pops alike): [`WIDEN_ULPS`] units in the last place and one more up, so that a

@@ -42,12 +42,6 @@ fn safe_recip(x: Vec3A) -> Vec3A {
     Vec3A::select(tiny, Vec3A::splat(1e20).copysign(x), Vec3A::ONE / x)
 }
 
-/// How much larger in magnitude than the inverse direction the factor of far plane
-/// distances is (relative): it widens every far distance by this much less its own rounding,
-/// which covers the rounding of a near and a far plane distance (see [`crate::accel`]).
-/// A power of two, so that `1 + FAR_WIDEN` is exact.
-pub const FAR_WIDEN: f32 = 4.0 * f32::EPSILON;
-
 /// Bytes between two plane arrays of a node: plane indices are kept multiplied by this, so
 /// that the box test adds them to the node's address as they are (x86 addressing scales an
 /// index by at most 8; an index of arrays of 32 bytes would cost a shift per plane and node
@@ -91,13 +85,11 @@ pub struct RayQuery {
     pub sx: f32,
     pub sy: f32,
     pub sz: f32,
-    /// Box test ([`crate::accel`]), in lanes: per axis the inverse direction and
-    /// `-origin * inv_dir` less the bound of its own rounding (the near plane distance's
-    /// factor and offset); the far plane distance's the same of the inverse direction made
-    /// [`FAR_WIDEN`] larger, so that far distances come out widened (see [`crate::accel`]).
+    /// Box test ([`crate::accel`]), in lanes: per axis the inverse direction, and
+    /// `-origin * inv_dir` less (near plane distances) or plus (far ones) the bound of its
+    /// own rounding.
     pub inv8: [F32x8; 3],
     pub near_off8: [F32x8; 3],
-    pub far_inv8: [F32x8; 3],
     pub far_off8: [F32x8; 3],
     /// The watertight test's axes: x, y, then z (the axis of largest |dir|).
     axes: [usize; 3],
@@ -137,8 +129,7 @@ impl RayQuery {
             let r = ray.origin * inv;
             -r + r.abs() * (toward * 3.0 * f32::EPSILON * 0.5)
         };
-        let far_inv = inv * (1.0 + FAR_WIDEN);
-        let (near, far) = (offset(inv, -1.0), offset(far_inv, 1.0));
+        let (near, far) = (offset(inv, -1.0), offset(inv, 1.0));
         let signs = inv.cmpge(Vec3A::ZERO).bitmask() as usize & 7;
         let (near_plane, far_plane) = PLANE_OFFSETS[signs];
         // x * 0 is 0 for a finite x and NaN otherwise: one test for all nine numbers (an
@@ -153,7 +144,6 @@ impl RayQuery {
             sz,
             inv8: lanes(inv),
             near_off8: lanes(near),
-            far_inv8: lanes(far_inv),
             far_off8: lanes(far),
             axes,
             near_plane,

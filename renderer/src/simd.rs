@@ -147,6 +147,16 @@ mod imp {
                 F32x8(_mm256_castsi256_ps(m))
             }
         }
+        /// Each lane's bit pattern less `ulps`, as a signed integer: a distance that is not
+        /// negative moved `ulps` units in the last place down (below zero, a negative integer,
+        /// which [`F32x8::below_bits`] finds below every distance that is not negative).
+        #[inline(always)]
+        pub fn less_ulps(self, ulps: i32) -> F32x8 {
+            unsafe {
+                let d = _mm256_sub_epi32(_mm256_castps_si256(self.0), _mm256_set1_epi32(ulps));
+                F32x8(_mm256_castsi256_ps(d))
+            }
+        }
         /// Lanes whose bit pattern is below `b`'s, as signed integers (see [`crate::simd`]:
         /// `self < b` where `self` is not negative; never where `b` is negative).
         #[inline(always)]
@@ -546,6 +556,10 @@ mod imp {
         #[inline(always)]
         pub fn min_bits(self, b: F32x8) -> F32x8 {
             self.zip_bits(b, i32::min)
+        }
+        #[inline(always)]
+        pub fn less_ulps(self, ulps: i32) -> F32x8 {
+            self.map(|x| f32::from_bits((x.to_bits() as i32).wrapping_sub(ulps) as u32))
         }
         #[inline(always)]
         pub fn below_bits(self, b: F32x8) -> M8 {
