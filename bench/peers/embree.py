@@ -21,7 +21,7 @@ What it does
    a float VEC3 POSITION accessor with min/max, UINT32 indices, one node, one scene; no
    material, camera or normals. The file is read back and checked against the spec
    (header, chunk padding, byteLengths, alignment, min/max) on every run.
-2. Writes three ray sets:
+2. Writes four ray sets:
    - `primary`: a pinhole camera above and in front of the landscape looking down at it
      obliquely; one ray per pixel of a square image of isqrt(N)^2 pixels (1000x1000 for
      N = 1 M), in scan-line order (top row first, left to right); the top rows see sky.
@@ -31,6 +31,10 @@ What it does
      incoming ray, a cosine-weighted direction about it, and the origin moved off the
      surface along that normal by 1e-4 x the bounding-box diagonal (so tnear = 0 works).
      So this set has as many rays as primary rays that hit.
+   - `escaping`: rays that start one bounding-box diagonal out from the box's centre and
+     point straight away from it: each query tests the root's box and ends, so their rate
+     is the fixed cost of a query (not one of the issue's targets; it says how much of the
+     other sets' time that cost is).
    The mesh and the ray files are cached in the output folder under names keyed by their
    generation parameters, and made again only when absent.
 3. Traces each set with Embree on one core and times it, then runs
@@ -135,11 +139,11 @@ GEN_VERSION = 1
 FULL_MESH = dict(terrain_n=640, objects=48, subdiv=(14, 22), seed=1991)
 QUICK_MESH = dict(terrain_n=200, objects=12, subdiv=(9, 13), seed=1991)
 HALF_SIZE = 100.0  # the landscape spans [-100, 100] in x and z
-RAY_SEEDS = dict(random=7, diffuse=11)
+RAY_SEEDS = dict(random=7, diffuse=11, escaping=13)
 # Above the landscape's near edge (z = +100), looking down along -z: the top rows reach
 # just past the far edge (sky over its low parts), the bottom rows land inside it.
 CAMERA = dict(eye=(0.0, 70.0, 130.0), pitch_deg=33.0, vfov_deg=45.0)
-SETS = ("primary", "random", "diffuse")
+SETS = ("primary", "random", "diffuse", "escaping")
 
 
 def log(msg):
@@ -463,6 +467,22 @@ def random_rays(n, bbox_lo, bbox_hi, seed):
     phi = rng.u(0.0, 2 * math.pi, n)
     r = np.sqrt(np.maximum(0.0, 1.0 - zc * zc))
     d = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
+    return o, d
+
+
+def escaping_rays(n, bbox_lo, bbox_hi, seed):
+    """Rays that meet nothing at once: each starts one bounding-box diagonal out from the box's
+    centre and points straight away from it, so a query tests the root's box and ends. Their
+    rate is the fixed cost of a query (setting the ray up, one node test, the call and the
+    loop around it), which every ray of the other sets pays too; not one of the issue's
+    targets, a measure of where the time goes."""
+    rng = Rand(seed)
+    zc = rng.u(-1.0, 1.0, n)
+    phi = rng.u(0.0, 2 * math.pi, n)
+    r = np.sqrt(np.maximum(0.0, 1.0 - zc * zc))
+    d = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
+    centre = (bbox_lo + bbox_hi) / 2
+    o = centre + d * float(np.linalg.norm(bbox_hi - bbox_lo))
     return o, d
 
 
@@ -845,6 +865,8 @@ def main():
             o, d = primary_rays(args.rays, lo, hi)
         elif name == "random":
             o, d = random_rays(args.rays, lo, hi, RAY_SEEDS["random"])
+        elif name == "escaping":
+            o, d = escaping_rays(args.rays, lo, hi, RAY_SEEDS["escaping"])
         else:
             po, pd = read_rays(ray_paths["primary"])
             hit = scene.run(po, pd, dists=np.full(len(po), np.inf, np.float32),
