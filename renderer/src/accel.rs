@@ -915,10 +915,10 @@ const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 /// t times (1 + EPSILON / 2) squared and the computed far one at least t times
 /// (1 - EPSILON / 2) squared: the near one exceeds the far one by under 2 EPSILON of it, at
 /// most four units in the last place, which the lowering covers with room to spare.
-/// Computing the far distances with a slightly larger inverse direction instead (which
-/// needs no step on the chain, as the subtraction is) took three more eight-lane constants
-/// per ray, kept in registers the leaf test needs; on the Zen 3 of 2026-12-07 the
-/// subtraction was 1 to 3% faster (README).
+/// Computing the far distances with a slightly larger inverse direction instead adds no
+/// step to the chain, where the subtraction adds one, but takes three more eight-lane
+/// constants a ray, in registers the leaf test needs too; on the Zen 3 of 2026-12-07 the
+/// subtraction came out 1 to 3% faster (README).
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, limit: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
