@@ -463,11 +463,15 @@ def primary_rays(n, bbox_lo, bbox_hi):
 def random_rays(n, bbox_lo, bbox_hi, seed):
     rng = Rand(seed)
     o = bbox_lo + (bbox_hi - bbox_lo) * rng.u(size=(n, 3))
+    return o, sphere_directions(rng, n)
+
+
+def sphere_directions(rng, n):
+    """`n` directions uniform on the unit sphere, drawn from `rng`."""
     zc = rng.u(-1.0, 1.0, n)
     phi = rng.u(0.0, 2 * math.pi, n)
     r = np.sqrt(np.maximum(0.0, 1.0 - zc * zc))
-    d = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
-    return o, d
+    return np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
 
 
 def escaping_rays(n, bbox_lo, bbox_hi, seed):
@@ -476,11 +480,7 @@ def escaping_rays(n, bbox_lo, bbox_hi, seed):
     rate is the fixed cost of a query (setting the ray up, one node test, the call and the
     loop around it), which every ray of the other sets pays too; not one of the issue's
     targets, a measure of where the time goes."""
-    rng = Rand(seed)
-    zc = rng.u(-1.0, 1.0, n)
-    phi = rng.u(0.0, 2 * math.pi, n)
-    r = np.sqrt(np.maximum(0.0, 1.0 - zc * zc))
-    d = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
+    d = sphere_directions(Rand(seed), n)
     centre = (bbox_lo + bbox_hi) / 2
     o = centre + d * float(np.linalg.norm(bbox_hi - bbox_lo))
     return o, d

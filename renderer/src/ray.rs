@@ -124,12 +124,11 @@ impl RayQuery {
         let dz = dir[kz];
         let axes = AXES[2 * kz + usize::from(dz < 0.0)];
         let sz = 1.0 / dz;
-        // `r` and the sums below each round by half an ulp of their size.
-        let offset = |inv: Vec3A, toward: f32| {
-            let r = ray.origin * inv;
-            -r + r.abs() * (toward * 3.0 * f32::EPSILON * 0.5)
-        };
-        let (near, far) = (offset(inv, -1.0), offset(inv, 1.0));
+        // `r` and the sums below each round by half an ulp of their size: the slack moves
+        // the near offset down and the far one up by more than that.
+        let r = ray.origin * inv;
+        let slack = r.abs() * (3.0 * f32::EPSILON * 0.5);
+        let (near, far) = (-r - slack, -r + slack);
         let signs = inv.cmpge(Vec3A::ZERO).bitmask() as usize & 7;
         let (near_plane, far_plane) = PLANE_OFFSETS[signs];
         // x * 0 is 0 for a finite x and NaN otherwise: one test for all nine numbers (an

@@ -559,7 +559,7 @@ mod imp {
         }
         #[inline(always)]
         pub fn less_ulps(self, ulps: i32) -> F32x8 {
-            self.map(|x| f32::from_bits((x.to_bits() as i32).wrapping_sub(ulps) as u32))
+            self.map(|x| super::widen_ulps(x, -ulps))
         }
         #[inline(always)]
         pub fn below_bits(self, b: F32x8) -> M8 {
