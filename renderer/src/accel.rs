@@ -2270,14 +2270,15 @@ mod tests {
     }
 
     /// A deep tree (triangles at exponentially growing distances nest their boxes one in
-    /// the next, out to 1e34) finds what brute force finds, nearest and every hit. The
-    /// binned build makes 13 levels of it (it splits off about ten triangles a level where
-    /// PLOC merged one at a time and made 17 or more).
+    /// the next, out to 1e33) finds what brute force finds, nearest and every hit. The
+    /// binned build makes 14 levels of it: it splits off a few blocks of triangles a level,
+    /// where PLOC merged one at a time and made 17 or more (counting blocks, not triangles,
+    /// it made 11 of the 300 triangles that gave 13 before).
     #[test]
     fn a_deep_tree_finds_what_brute_force_finds() {
         let mut m = MeshData::default();
-        for i in 0..300 {
-            let x = 1.3f32.powi(i);
+        for i in 0..420 {
+            let x = 1.2f32.powi(i);
             let s = x * 0.1;
             let base = m.positions.len() as u32;
             m.positions.extend([

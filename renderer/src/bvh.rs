@@ -519,6 +519,12 @@ struct SahTask {
 /// A binary tree over `boxes` by top-down binned surface area heuristic on the boxes'
 /// centres (bins as Embree sizes them: `4 + n / 20`, at most 32), ranges of up to eight
 /// boxes split exactly, leaves of up to [`SAH_LEAF`] boxes and `max_leaf`, into `out`.
+///
+/// A side's cost counts its boxes in whole leaf blocks (`ceil(n / SAH_LEAF)`), as Embree's
+/// builder does: a leaf's triangles are tested a block at a time, so a split that leaves a
+/// block part empty saves nothing for it, and splits into full blocks win ties. Against
+/// counting boxes one by one, on the landscape of `bench/peers/embree.py`, node tests and
+/// blocks a query fell by under 1% and primary rays ran about 3% faster (README).
 fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahScratch) {
     use glam::Vec3A;
     use obvhs::bvh2::node::Bvh2Node;
@@ -547,6 +553,7 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
     let mut bin_count = [[0u32; SAH_BINS]; 3];
     let mut right_area = [0.0f64; SAH_BINS];
     let leaf_size = SAH_LEAF.min(max_leaf.max(1) as usize);
+    let blocks = |n: usize| n.div_ceil(leaf_size) as f64;
     while let Some(t) = work.pop() {
         let count = t.end - t.start;
         if count <= leaf_size {
@@ -580,8 +587,8 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
                 let mut acc = Aabb::INVALID;
                 for k in 0..count - 1 {
                     acc = acc.union(&boxes[order[k] as u32 as usize]);
-                    let cost = half_area_f64(&acc) * (k + 1) as f64
-                        + suffix[k + 1] * (count - k - 1) as f64;
+                    let cost =
+                        half_area_f64(&acc) * blocks(k + 1) + suffix[k + 1] * blocks(count - k - 1);
                     if cost < best.0 {
                         best = (cost, a, k + 1);
                     }
@@ -652,8 +659,8 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
                     if below == 0 || below as usize == count {
                         continue;
                     }
-                    let cost = half_area_f64(&acc) * f64::from(below)
-                        + right_area[k + 1] * (count - below as usize) as f64;
+                    let cost = half_area_f64(&acc) * blocks(below as usize)
+                        + right_area[k + 1] * blocks(count - below as usize);
                     if cost < best.0 {
                         best = (cost, a, k);
                     }
@@ -902,6 +909,24 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Costs count whole blocks: eight unit cubes, five in a row and three more further on.
+    /// Counted box by box, cutting after the fifth is cheapest (11 x 5 + 7 x 3 = 76 against
+    /// 9 x 4 + 19 x 4 = 112 for after the fourth); counted in blocks of four, after the
+    /// fourth (9 + 19 = 28 against 11 x 2 + 7 = 29), which leaves no block part empty.
+    #[test]
+    fn splits_are_costed_in_whole_blocks() {
+        let b: Vec<Aabb> = [0.0f32, 1.0, 2.0, 3.0, 4.0, 10.0, 11.0, 12.0]
+            .iter()
+            .map(|&x| Aabb::new(Vec3A::new(x, 0.0, 0.0), Vec3A::new(x + 1.0, 1.0, 1.0)))
+            .collect();
+        let mut t = Bvh2::default();
+        binned_sah(&b, MAX_LEAF, &mut t, &mut SahScratch::default());
+        let root = &t.nodes[0];
+        assert_eq!(root.prim_count, 0);
+        let sides = [0, 1].map(|k| t.nodes[root.first_index as usize + k].prim_count);
+        assert_eq!(sides, [4, 4]);
     }
 
     #[test]
