@@ -522,9 +522,9 @@ struct SahTask {
 ///
 /// A side's cost counts its boxes in whole leaf blocks (`ceil(n / SAH_LEAF)`), as Embree's
 /// builder does: a leaf's triangles are tested a block at a time, so a split that leaves a
-/// block part empty saves nothing for it, and splits into full blocks win ties. Against
-/// counting boxes one by one, on the landscape of `bench/peers/embree.py`, node tests and
-/// blocks a query fell by under 1% and primary rays ran about 3% faster (README).
+/// block part empty saves nothing for it. Against counting boxes one by one, on the
+/// landscape of `bench/peers/embree.py`, node tests and blocks a query fell by under 1% and
+/// primary rays ran 1 to 3% faster (README).
 fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahScratch) {
     use glam::Vec3A;
     use obvhs::bvh2::node::Bvh2Node;
