@@ -917,8 +917,10 @@ const _: () = assert!(crate::ray::PLANE_BYTES == size_of::<[f32; 8]>());
 /// most four units in the last place, which the lowering covers with room to spare.
 /// Computing the far distances with a slightly larger inverse direction instead adds no
 /// step to the chain, where the subtraction adds one, but takes three more eight-lane
-/// constants a ray, in registers the leaf test needs too; on the Zen 3 of 2026-12-07 the
-/// subtraction came out 1 to 3% faster (README).
+/// constants a ray, in registers the leaf test needs too. On the Zen 3 of 2026-12-07 the
+/// subtraction came out 1 to 3% faster in most runs; on an Intel Xeon (model 207) the same
+/// day, 3 to 7% slower on primary rays and 1 to 5% faster on random and diffuse ones
+/// (diffuse rays are the set furthest behind Embree; README).
 #[inline(always)]
 fn test_node(q: &RayQuery, n: &Node8, limit: F32x8) -> (u32, F32x8) {
     let (near, far) = q.planes();
