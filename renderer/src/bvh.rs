@@ -404,7 +404,42 @@ impl Collapser {
 
 /// Half the surface area of a box, in f64 (finite for any finite f32 box; 0 for an empty or
 /// inverted one).
+///
+/// With AVX2, the same operations in the same order on the three axes at once (the same bits:
+/// `areas_agree_with_the_scalar_sum` checks): the splits' sweeps call it for every bin and the
+/// collapse for every node, and one axis at a time (conversions and NaN-aware maxima, each
+/// scalar) it took 13% more of the instructions that build a chunk's tree.
+#[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+#[inline(always)]
 fn half_area_f64(b: &Aabb) -> f64 {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX2 is enabled for this build (the cfg above); `Vec3A` is four `f32`s, 16-byte
+    // aligned, so each load reads one whole vector. The fourth lane is never summed.
+    unsafe {
+        let lo = _mm256_cvtps_pd(_mm_load_ps((&b.min as *const glam::Vec3A).cast()));
+        let hi = _mm256_cvtps_pd(_mm_load_ps((&b.max as *const glam::Vec3A).cast()));
+        // `max_pd` gives its second operand where the first is NaN: 0, as `f64::max` does.
+        let d = _mm256_max_pd(_mm256_sub_pd(hi, lo), _mm256_setzero_pd());
+        // (d0 d1, d1 d2, d2 d0, -): the products of the scalar sum, each rounded alike.
+        let p = _mm256_mul_pd(d, _mm256_permute4x64_pd::<0b11_00_10_01>(d));
+        let p01 = _mm256_castpd256_pd128(p);
+        let sum = _mm_add_sd(
+            _mm_add_sd(p01, _mm_unpackhi_pd(p01, p01)),
+            _mm256_extractf128_pd::<1>(p),
+        );
+        let a = _mm_cvtsd_f64(sum);
+        if a.is_finite() { a } else { 0.0 }
+    }
+}
+
+#[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+fn half_area_f64(b: &Aabb) -> f64 {
+    half_area_f64_scalar(b)
+}
+
+/// [`half_area_f64`] one axis at a time.
+#[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+fn half_area_f64_scalar(b: &Aabb) -> f64 {
     let d = [0, 1, 2].map(|k| (b.max[k] as f64 - b.min[k] as f64).max(0.0));
     let a = d[0] * d[1] + d[1] * d[2] + d[2] * d[0];
     if a.is_finite() { a } else { 0.0 }
@@ -786,7 +821,58 @@ mod tests {
         )
     }
 
+    /// Box corners of every kind the build can meet: ordinary, equal (flat), inverted
+    /// (empty), infinite and of far apart magnitudes.
+    fn corner() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![
+            -1e3f32..1e3,
+            -1e30f32..1e30,
+            Just(0.0f32),
+            Just(-0.0f32),
+            Just(f32::INFINITY),
+            Just(f32::NEG_INFINITY),
+            Just(f32::MAX),
+            Just(f32::MIN_POSITIVE),
+        ]
+    }
+
+    #[test]
+    fn areas_of_flat_and_signed_zero_boxes_agree_with_the_scalar_sum() {
+        let z = [0.0f32, -0.0, 1.0, -1.0];
+        for &a in &z {
+            for &b in &z {
+                for &c in &z {
+                    let b = Aabb::new(Vec3A::new(a, b, c), Vec3A::new(c, a, b));
+                    assert_eq!(
+                        half_area_f64(&b).to_bits(),
+                        half_area_f64_scalar(&b).to_bits(),
+                        "{b:?}"
+                    );
+                }
+            }
+        }
+    }
+
     proptest::proptest! {
+        /// The half area in four lanes has the scalar sum's bits, whatever the box: the
+        /// splits, and so the trees, come out the same on every machine.
+        #[test]
+        fn areas_agree_with_the_scalar_sum(
+            min in proptest::array::uniform3(corner()),
+            max in proptest::array::uniform3(corner()),
+        ) {
+            let b = Aabb::new(Vec3A::from(min), Vec3A::from(max));
+            proptest::prop_assert_eq!(
+                half_area_f64(&b).to_bits(),
+                half_area_f64_scalar(&b).to_bits()
+            );
+            proptest::prop_assert_eq!(
+                half_area_f64(&Aabb::INVALID).to_bits(),
+                half_area_f64_scalar(&Aabb::INVALID).to_bits()
+            );
+        }
+
         /// The shortcut for a left leaf gives what the plain loop over every split gives,
         /// costs and the left child's slots alike (the trees come out the same).
         #[test]
