@@ -159,9 +159,17 @@ impl Searched {
         }
     }
 
+    /// Whether `id` is among the first `noted` chunks noted (those a walk found noted when
+    /// it began: a walk meets each chunk once, so what it notes itself it never meets again,
+    /// and a query that never waited looks at none).
     #[inline(always)]
-    fn holds(&self, id: u32) -> bool {
-        self.len > 0 && self.ids[..self.len as usize].contains(&id)
+    fn holds(&self, id: u32, noted: u32) -> bool {
+        noted > 0 && self.ids[..(noted.min(self.len) as usize)].contains(&id)
+    }
+
+    /// How many chunks are noted.
+    fn noted(&self) -> u32 {
+        self.len
     }
 }
 
@@ -393,6 +401,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         missing: &Cell<Option<u32>>,
     ) -> Option<DataError> {
         let mut error = None;
+        let noted = searched.noted();
         accel::walk::<true>(
             &self.scene.tlas.accel().nodes,
             q,
@@ -404,7 +413,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             // the Cornell box, where a query enters 1.35 chunks, that was 8% of a query.
             #[inline(always)]
             |chunk_id, tmax| {
-                let chunk = match self.reach(chunk_id, searched, missing, &mut error) {
+                let chunk = match self.reach(chunk_id, searched, noted, missing, &mut error) {
                     Ok(c) => c,
                     Err(visit) => return visit,
                 };
@@ -440,7 +449,8 @@ impl<'a, D: SceneData> Tracer<'a, D> {
     }
 
     /// The chunk a top-level walk reaches, or how the walk goes on without it: past it
-    /// ([`Visit::Continue`]) when the query searched it before it waited or when it is
+    /// ([`Visit::Continue`]) when the query searched it before it waited (among the first
+    /// `noted` of `searched`, see [`Searched::holds`]) or when it is
     /// missing (the first such is noted in `missing`, while deferring); stopped
     /// ([`Visit::Stop`]) by an error, put in `error`, that ends the query.
     #[inline(always)]
@@ -448,10 +458,11 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         &self,
         chunk_id: u32,
         searched: &Searched,
+        noted: u32,
         missing: &Cell<Option<u32>>,
         error: &mut Option<DataError>,
     ) -> Result<D::ChunkRef<'a>, Visit> {
-        if D::MAY_DEFER && searched.holds(chunk_id) {
+        if D::MAY_DEFER && searched.holds(chunk_id, noted) {
             return Err(Visit::Continue);
         }
         match self.data.chunk(chunk_id) {
@@ -546,6 +557,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
         let mut blocked = false;
         let mut error = None;
         let missing = Cell::new(None);
+        let noted = searched.noted();
         accel::walk::<false>(
             &self.scene.tlas.accel().nodes,
             &q,
@@ -553,7 +565,7 @@ impl<'a, D: SceneData> Tracer<'a, D> {
             |_| {},
             |_| {},
             |chunk_id, tmax| {
-                let chunk = match self.reach(chunk_id, &searched, &missing, &mut error) {
+                let chunk = match self.reach(chunk_id, &searched, noted, &missing, &mut error) {
                     Ok(c) => c,
                     Err(visit) => return visit,
                 };
@@ -624,5 +636,134 @@ pub fn shadow_ray(origin: glam::Vec3A, target: Option<glam::Vec3A>, dir: Vec3) -
         // A hair short of the target, so the light's own surface does not block it.
         Some(t) => Ray::new(origin, t - origin, 1.0 - 1e-4),
         None => Ray::new(origin, dir.into(), f32::INFINITY),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::cell::RefCell;
+
+    use super::*;
+    use crate::{
+        demo::demo_scene,
+        scene::{PrepareOptions, prepare},
+        source::MemoryData,
+        texture::Tile,
+    };
+
+    /// Every chunk of `data` but `absent`, which is missing while deferring; notes every
+    /// chunk asked for, in order.
+    struct Asked {
+        data: MemoryData,
+        absent: Cell<Option<u32>>,
+        asked: RefCell<Vec<u32>>,
+    }
+
+    impl SceneData for Asked {
+        type ChunkRef<'a> = &'a Chunk;
+        type TileRef<'a> = &'a Tile;
+
+        const MAY_DEFER: bool = true;
+
+        fn chunk(&self, id: u32) -> Result<&Chunk, DataError> {
+            self.asked.borrow_mut().push(id);
+            if self.absent.get() == Some(id) {
+                return Err(DataError::Missing(Item::Chunk(id)));
+            }
+            self.data.chunk(id)
+        }
+
+        fn tile(&self, id: u32) -> Result<&Tile, DataError> {
+            self.data.tile(id)
+        }
+    }
+
+    /// A closest-hit query that waited for a chunk, asked again once it is here, searches
+    /// only what it had not: of the chunks searched before the wait, at most the best hit's
+    /// is asked for again (to be handed out with the hit), and the answer is the one found
+    /// with every chunk here.
+    #[test]
+    fn a_query_asked_again_after_a_wait_searches_only_what_is_left() {
+        let (header, data) = prepare(
+            demo_scene(),
+            &PrepareOptions {
+                chunk_triangles: 16,
+            },
+        );
+        let key = AlphaKey::new(&Sampler::new(0, 0, 0, 0), 0);
+        let centre = (header.bounds_min + header.bounds_max) * 0.5;
+        let all = Asked {
+            data,
+            absent: Cell::new(None),
+            asked: RefCell::new(Vec::new()),
+        };
+        let mut checked = 0;
+        for i in 0..200 {
+            // Directions spread over the sphere (a Fibonacci lattice).
+            let z = 1.0 - (i as f32 + 0.5) / 100.0;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = i as f32 * 2.399_963;
+            let ray = Ray::infinite(centre, Vec3::new(r * phi.cos(), r * phi.sin(), z));
+            all.absent.set(None);
+            all.asked.borrow_mut().clear();
+            let Ok(Some(want)) = Tracer::new(&header, &all).closest(&ray, key) else {
+                continue;
+            };
+            let want = (
+                want.tri_hit.t.to_bits(),
+                want.chunk.header().chunk_id,
+                want.tri,
+            );
+            let entered = all.asked.borrow().clone();
+            if entered.len() < 3 {
+                continue;
+            }
+            for &x in &entered {
+                let tracer = Tracer::new(&header, &all);
+                all.absent.set(Some(x));
+                all.asked.borrow_mut().clear();
+                let Err(DataError::Missing(Item::Chunk(waited))) = tracer.closest(&ray, key) else {
+                    continue;
+                };
+                assert_eq!(waited, x);
+                let before: Vec<u32> = all
+                    .asked
+                    .borrow()
+                    .iter()
+                    .copied()
+                    .filter(|&c| c != x)
+                    .collect();
+                all.absent.set(None);
+                all.asked.borrow_mut().clear();
+                let got = tracer
+                    .closest(&ray, key)
+                    .expect("every chunk here")
+                    .expect("a hit");
+                assert_eq!(
+                    (
+                        got.tri_hit.t.to_bits(),
+                        got.chunk.header().chunk_id,
+                        got.tri
+                    ),
+                    want
+                );
+                let again: Vec<u32> = all
+                    .asked
+                    .borrow()
+                    .iter()
+                    .copied()
+                    .filter(|c| before.contains(c))
+                    .collect();
+                assert!(
+                    again.len() <= 1,
+                    "ray {i}, waited for chunk {x}: searched {before:?} before, asked again for {again:?}"
+                );
+                checked += usize::from(before.len() >= 2);
+            }
+        }
+        assert!(
+            checked >= 10,
+            "only {checked} waits with two chunks searched before them"
+        );
     }
 }
