@@ -408,7 +408,7 @@ impl Collapser {
 /// With AVX2, the same operations in the same order on the three axes at once (the same bits:
 /// `areas_agree_with_the_scalar_sum` checks): the splits' sweeps call it for every bin and the
 /// collapse for every node, and one axis at a time (conversions and NaN-aware maxima, each
-/// scalar) it took 13% more of the instructions that build a chunk's tree.
+/// scalar) the chunks' trees took 15% more instructions to build.
 #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
 #[inline(always)]
 fn half_area_f64(b: &Aabb) -> f64 {
@@ -540,7 +540,8 @@ struct SahScratch {
     centres: Vec<glam::Vec3A>,
     work: Vec<SahTask>,
     /// The blocks `n` boxes fill, as f64, at `n`: the sweeps cost a side by them at every bin,
-    /// where dividing by a leaf size known only at run time took 3% of a scene's preparation.
+    /// where dividing by a leaf size known only at run time, few instructions but long ones,
+    /// took 6% of a scene's preparation.
     blocks: Vec<f64>,
 }
 
@@ -846,19 +847,22 @@ mod tests {
     }
 
     #[test]
-    fn areas_of_flat_and_signed_zero_boxes_agree_with_the_scalar_sum() {
-        let z = [0.0f32, -0.0, 1.0, -1.0];
-        for &a in &z {
-            for &b in &z {
-                for &c in &z {
-                    let b = Aabb::new(Vec3A::new(a, b, c), Vec3A::new(c, a, b));
-                    assert_eq!(
-                        half_area_f64(&b).to_bits(),
-                        half_area_f64_scalar(&b).to_bits(),
-                        "{b:?}"
-                    );
+    fn areas_of_flat_empty_and_signed_zero_boxes_agree_with_the_scalar_sum() {
+        let v = [0.0f32, -0.0, 1.0, -1.0];
+        let mut boxes = vec![Aabb::INVALID];
+        for &x in &v {
+            for &y in &v {
+                for &z in &v {
+                    boxes.push(Aabb::new(Vec3A::new(x, y, z), Vec3A::new(z, x, y)));
                 }
             }
+        }
+        for b in boxes {
+            assert_eq!(
+                half_area_f64(&b).to_bits(),
+                half_area_f64_scalar(&b).to_bits(),
+                "{b:?}"
+            );
         }
     }
 
@@ -874,10 +878,6 @@ mod tests {
             proptest::prop_assert_eq!(
                 half_area_f64(&b).to_bits(),
                 half_area_f64_scalar(&b).to_bits()
-            );
-            proptest::prop_assert_eq!(
-                half_area_f64(&Aabb::INVALID).to_bits(),
-                half_area_f64_scalar(&Aabb::INVALID).to_bits()
             );
         }
 
