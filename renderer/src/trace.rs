@@ -697,23 +697,18 @@ mod tests {
             absent: Cell::new(None),
             asked: RefCell::new(Vec::new()),
         };
+        let found = |h: Hit<&Chunk>| (h.tri_hit.t.to_bits(), h.chunk.header().chunk_id, h.tri);
         let mut checked = 0;
         for i in 0..200 {
             // Directions spread over the sphere (a Fibonacci lattice).
-            let z = 1.0 - (i as f32 + 0.5) / 100.0;
-            let r = (1.0 - z * z).max(0.0).sqrt();
-            let phi = i as f32 * 2.399_963;
-            let ray = Ray::infinite(centre, Vec3::new(r * phi.cos(), r * phi.sin(), z));
+            let u = ((i as f32 + 0.5) / 200.0, (i as f32 * 0.618_034).fract());
+            let ray = Ray::infinite(centre, crate::light::uniform_sphere(u));
             all.absent.set(None);
             all.asked.borrow_mut().clear();
             let Ok(Some(want)) = Tracer::new(&header, &all).closest(&ray, key) else {
                 continue;
             };
-            let want = (
-                want.tri_hit.t.to_bits(),
-                want.chunk.header().chunk_id,
-                want.tri,
-            );
+            let want = found(want);
             let entered = all.asked.borrow().clone();
             if entered.len() < 3 {
                 continue;
@@ -739,14 +734,7 @@ mod tests {
                     .closest(&ray, key)
                     .expect("every chunk here")
                     .expect("a hit");
-                assert_eq!(
-                    (
-                        got.tri_hit.t.to_bits(),
-                        got.chunk.header().chunk_id,
-                        got.tri
-                    ),
-                    want
-                );
+                assert_eq!(found(got), want);
                 let again: Vec<u32> = all
                     .asked
                     .borrow()
