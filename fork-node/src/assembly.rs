@@ -22,7 +22,27 @@ pub(crate) struct PartOf {
 #[derive(Debug, Default)]
 pub(crate) struct SceneAssembly {
     of: Option<PartOf>,
-    parts: Vec<Option<Vec<u8>>>,
+    parts: Vec<Option<Part>>,
+}
+
+/// One part as its frame brought it: kept as it came, not copied (a part is up to 16 MiB,
+/// and fresh memory costs about as much as the copy on a virtual machine).
+#[derive(Debug, Clone)]
+pub(crate) struct Part {
+    words: Box<[u32]>,
+    len: usize,
+}
+
+impl Part {
+    /// The first `len` bytes of `words`, if it holds that many.
+    pub fn new(words: Box<[u32]>, len: usize) -> Option<Part> {
+        protocol::words_to_bytes(&words, len)?;
+        Some(Part { words, len })
+    }
+
+    fn bytes(&self) -> &[u8] {
+        protocol::words_to_bytes(&self.words, self.len).expect("checked when the part came")
+    }
 }
 
 /// Why a part was refused.
@@ -49,7 +69,7 @@ impl SceneAssembly {
         &mut self,
         part: u32,
         of: PartOf,
-        bytes: &[u8],
+        bytes: Part,
     ) -> Result<Option<SceneAssembly>, PartError> {
         if self.parts.len() != of.parts as usize {
             *self = SceneAssembly {
@@ -74,7 +94,7 @@ impl SceneAssembly {
                 part,
                 parts: of.parts,
             })?;
-        *slot = Some(bytes.to_vec());
+        *slot = Some(bytes);
         if self.parts.iter().all(Option::is_some) {
             Ok(Some(std::mem::take(self)))
         } else {
@@ -101,17 +121,27 @@ pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(SceneHeader, MemoryData
         total: 0,
         chunk_triangles: 0,
     });
-    let mut bytes = Vec::with_capacity(of.total as usize);
-    for p in a.parts.into_iter().flatten() {
-        bytes.extend_from_slice(&p);
-    }
-    if bytes.len() as u64 != of.total {
+    let got: u64 = a.parts.iter().flatten().map(|p| p.len as u64).sum();
+    if got != of.total {
         return Err(PrepareError::Size {
-            got: bytes.len() as u64,
+            got,
             expected: of.total,
         });
     }
-    let desc: SceneDesc = decode_value(&bytes)?;
+    // A scene of one part is decoded where it came; one of several is joined once.
+    let joined: Vec<u8>;
+    let bytes = match &a.parts[..] {
+        [Some(only)] => only.bytes(),
+        parts => {
+            let mut all = Vec::with_capacity(got as usize);
+            for p in parts.iter().flatten() {
+                all.extend_from_slice(p.bytes());
+            }
+            joined = all;
+            &joined[..]
+        }
+    };
+    let desc: SceneDesc = decode_value(bytes)?;
     desc.validate()?;
     let opts = PrepareOptions {
         chunk_triangles: (of.chunk_triangles as usize).max(1),
@@ -136,12 +166,12 @@ impl ForkNode {
     /// The first fork node collects the scene from the host, then prepares and places it.
     pub(crate) fn on_scene_part(
         self: Arc<ForkNode>,
-        frame: &Frame,
+        frame: Frame,
         part: u32,
         of: PartOf,
         len: u32,
     ) {
-        let Some(bytes) = protocol::words_to_bytes(&frame.data, len as usize) else {
+        let Some(bytes) = Part::new(frame.data, len as usize) else {
             tracing::warn!("fork node {}: scene part {part} is short", self.fabric.me());
             return;
         };
@@ -290,7 +320,18 @@ mod tests {
     };
 
     fn bytes(whole: &SceneAssembly) -> Vec<u8> {
-        whole.parts.iter().flatten().flatten().copied().collect()
+        whole
+            .parts
+            .iter()
+            .flatten()
+            .flat_map(Part::bytes)
+            .copied()
+            .collect()
+    }
+
+    /// `bytes` as a part arrives: in a frame's words.
+    fn part(bytes: &[u8]) -> Part {
+        Part::new(bytes_to_words(bytes), bytes.len()).unwrap()
     }
 
     #[test]
@@ -298,9 +339,9 @@ mod tests {
         for order in [[0, 1, 2], [2, 0, 1], [1, 2, 0]] {
             let mut a = SceneAssembly::default();
             let mut whole = None;
-            for (n, &part) in order.iter().enumerate() {
-                let data = [part as u8; 3];
-                let added = a.add(part, OF, &data).unwrap();
+            for (n, &index) in order.iter().enumerate() {
+                let data = [index as u8; 3];
+                let added = a.add(index, OF, part(&data)).unwrap();
                 assert_eq!(added.is_some(), n == 2, "order {order:?}");
                 whole = whole.or(added);
             }
@@ -312,16 +353,16 @@ mod tests {
     #[test]
     fn a_part_sent_twice_does_not_complete_the_scene() {
         let mut a = SceneAssembly::default();
-        assert!(a.add(0, OF, &[0; 3]).unwrap().is_none());
-        assert!(a.add(0, OF, &[0; 3]).unwrap().is_none());
-        assert!(a.add(1, OF, &[1; 3]).unwrap().is_none());
+        assert!(a.add(0, OF, part(&[0; 3])).unwrap().is_none());
+        assert!(a.add(0, OF, part(&[0; 3])).unwrap().is_none());
+        assert!(a.add(1, OF, part(&[1; 3])).unwrap().is_none());
     }
 
     #[test]
     fn refuses_a_part_beyond_the_count() {
         let mut a = SceneAssembly::default();
         assert_eq!(
-            a.add(3, OF, &[0]).unwrap_err(),
+            a.add(3, OF, part(&[0])).unwrap_err(),
             PartError::OutOfRange { part: 3, parts: 3 }
         );
     }
@@ -329,10 +370,10 @@ mod tests {
     #[test]
     fn refuses_a_part_of_another_scene_with_as_many_parts() {
         let mut a = SceneAssembly::default();
-        a.add(0, OF, &[0; 3]).unwrap();
+        a.add(0, OF, part(&[0; 3])).unwrap();
         let other = PartOf { total: 12, ..OF };
         assert_eq!(
-            a.add(1, other, &[1; 3]).unwrap_err(),
+            a.add(1, other, part(&[1; 3])).unwrap_err(),
             PartError::Mismatch {
                 part: 1,
                 got: other,
@@ -340,21 +381,21 @@ mod tests {
             }
         );
         // The scene being assembled is untouched.
-        a.add(1, OF, &[1; 3]).unwrap();
-        assert!(a.add(2, OF, &[2; 3]).unwrap().is_some());
+        a.add(1, OF, part(&[1; 3])).unwrap();
+        assert!(a.add(2, OF, part(&[2; 3])).unwrap().is_some());
     }
 
     #[test]
     fn a_new_part_count_starts_a_new_scene() {
         let mut a = SceneAssembly::default();
-        a.add(0, OF, &[0; 3]).unwrap();
+        a.add(0, OF, part(&[0; 3])).unwrap();
         let single = PartOf {
             parts: 1,
             total: 2,
             chunk_triangles: 64,
         };
         let whole = a
-            .add(0, single, &[7, 7])
+            .add(0, single, part(&[7, 7]))
             .unwrap()
             .expect("one part is the whole");
         assert_eq!(bytes(&whole), [7, 7]);
@@ -371,8 +412,8 @@ mod tests {
         };
         let (first, second) = encoded.split_at(encoded.len() / 2);
         let mut a = SceneAssembly::default();
-        assert!(a.add(1, of, second).unwrap().is_none());
-        let whole = a.add(0, of, first).unwrap().unwrap();
+        assert!(a.add(1, of, part(second)).unwrap().is_none());
+        let whole = a.add(0, of, part(first)).unwrap().unwrap();
         let (scene, data) = prepare_scene(whole).unwrap();
         assert_eq!(scene.chunks.len(), data.chunks.len());
         assert_eq!(scene.triangle_count(), desc.triangle_count() as u64);
@@ -382,7 +423,7 @@ mod tests {
     fn refuses_parts_that_do_not_add_up_to_the_total() {
         let mut a = SceneAssembly::default();
         let of = PartOf { parts: 1, ..OF };
-        let whole = a.add(0, of, &[1, 2]).unwrap().unwrap();
+        let whole = a.add(0, of, part(&[1, 2])).unwrap().unwrap();
         let err = prepare_scene(whole).unwrap_err();
         assert!(
             matches!(
@@ -404,7 +445,7 @@ mod tests {
             total: 4,
             chunk_triangles: 64,
         };
-        let whole = a.add(0, of, &[0xff; 4]).unwrap().unwrap();
+        let whole = a.add(0, of, part(&[0xff; 4])).unwrap().unwrap();
         let err = prepare_scene(whole).unwrap_err();
         assert!(matches!(err, PrepareError::Decode(_)), "{err}");
     }

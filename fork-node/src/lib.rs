@@ -133,7 +133,7 @@ impl ForkNode {
                     total,
                     chunk_triangles,
                 };
-                self.on_scene_part(&frame, part, of, len)
+                self.on_scene_part(frame, part, of, len)
             }
             Message::Header {
                 len,

@@ -29,7 +29,7 @@ use std::{
 
 use fabric::shm::{self, Item, Part, Published, Segment, ShmError};
 use protocol::{CardSegment, DataId, Message, NodeId};
-use renderer::{MemoryData, chunk::Chunk};
+use renderer::{MemoryData, accel::WalkHeader, chunk::Chunk};
 
 use crate::{
     ForkNode,
@@ -328,16 +328,8 @@ impl ForkNode {
             .collect();
         let refs: Vec<Item> = items
             .iter()
-            .map(|(id, w)| Item {
-                id: *id,
-                part: Part::Words,
-                words: &w[..],
-            })
-            .chain(walks.iter().map(|(id, w)| Item {
-                id: *id,
-                part: Part::Walk,
-                words: w,
-            }))
+            .map(|(id, w)| Item::whole(*id, Part::Words, &w[..]))
+            .chain(walks.iter().map(|(id, w)| Item::whole(*id, Part::Walk, w)))
             .collect();
         let published = match Published::create(dir, f.me(), &refs) {
             Ok(p) => p,
@@ -434,21 +426,20 @@ fn write_shares(
 fn write_share(dir: &Path, fork: NodeId, placement: &Placement, data: &MemoryData) -> Written {
     let chunks: Vec<(usize, &Chunk)> = owned(&data.chunks, &placement.chunk_owner, fork).collect();
     let tiles: Vec<_> = owned(&data.tiles, &placement.tile_owner, fork).collect();
-    let walks: Vec<Vec<u32>> = chunks.iter().map(|(_, c)| c.accel().to_words()).collect();
-    let words = chunks.iter().map(|&(i, c)| Item {
-        id: DataId::Chunk(i as u32),
-        part: Part::Words,
-        words: c.words(),
-    });
-    let tile_items = tiles.iter().map(|&(i, t)| Item {
-        id: DataId::Tile(i as u32),
-        part: Part::Words,
-        words: &t.texels[..],
-    });
-    let walk_items = chunks.iter().zip(&walks).map(|(&(i, _), w)| Item {
+    // Written from the trees as they are: joined first, each would be copied into fresh
+    // memory on the way to the segment that the render nodes wait for.
+    let heads: Vec<WalkHeader> = chunks
+        .iter()
+        .map(|(_, c)| c.accel().walk_header())
+        .collect();
+    let words =
+        (chunks.iter()).map(|&(i, c)| Item::whole(DataId::Chunk(i as u32), Part::Words, c.words()));
+    let tile_items = (tiles.iter())
+        .map(|&(i, t)| Item::whole(DataId::Tile(i as u32), Part::Words, &t.texels[..]));
+    let walk_items = chunks.iter().zip(&heads).map(|(&(i, c), head)| Item {
         id: DataId::Chunk(i as u32),
         part: Part::Walk,
-        words: w,
+        pieces: c.accel().word_pieces(head).to_vec(),
     });
     let items: Vec<Item> = words.chain(tile_items).chain(walk_items).collect();
     let published = Published::create(dir, fork, &items)?;

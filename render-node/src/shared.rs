@@ -115,11 +115,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("magg-shared-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let words = [5u32; 16];
-        let item = Item {
-            id: DataId::Tile(0),
-            part: Part::Words,
-            words: &words,
-        };
+        let item = Item::whole(DataId::Tile(0), Part::Words, &words);
         let p = Published::create(&dir, 2, &[item]).unwrap();
         let s = SharedSegments::default();
         let mut wrong = p.nonce;

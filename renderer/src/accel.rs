@@ -488,6 +488,10 @@ pub struct WalkPlace {
 /// Words before the nodes in the block form: magic, node count, leaf count, then zeros up to
 /// a node's alignment, so that nodes that start 64-byte aligned stay so.
 const WALK_HEADER_WORDS: usize = 16;
+
+/// The first words of a tree's walking form ([`Bvh8::walk_header`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WalkHeader([u32; WALK_HEADER_WORDS]);
 const WALK_MAGIC: u32 = u32::from_le_bytes(*b"MGW8");
 const NODE_WORDS: usize = size_of::<Node8>() / 4;
 const TRI4_WORDS: usize = size_of::<Tri4>() / 4;
@@ -773,17 +777,30 @@ impl Bvh8 {
 
     /// `f` of the words of [`Bvh8::to_words`] in their three parts: header, nodes, leaves.
     fn with_word_parts<R>(&self, f: impl FnOnce([&[u32]; 3]) -> R) -> R {
+        let head = self.walk_header();
+        f(self.word_pieces(&head))
+    }
+
+    /// The header that [`Bvh8::to_words`] begins with.
+    pub fn walk_header(&self) -> WalkHeader {
         let mut head = [0; WALK_HEADER_WORDS];
         head[..3].copy_from_slice(&[
             WALK_MAGIC,
             self.nodes.len() as u32,
             self.leaves.len() as u32,
         ]);
-        f([
-            &head,
+        WalkHeader(head)
+    }
+
+    /// The words of [`Bvh8::to_words`] as the pieces they are made of, `head` (this tree's
+    /// [`Bvh8::walk_header`]), the nodes and the leaves, without joining them: for a writer
+    /// that puts them one after another where they go.
+    pub fn word_pieces<'a>(&'a self, head: &'a WalkHeader) -> [&'a [u32]; 3] {
+        [
+            &head.0,
             bytemuck::cast_slice(&self.nodes),
             bytemuck::cast_slice(&self.leaves),
-        ])
+        ]
     }
 
     /// The tree [`Bvh8::to_words`] wrote at words `start..end` of `block`, walked in place,
@@ -2094,6 +2111,10 @@ mod tests {
             "the test needs a tree of several nodes"
         );
         let words = bvh.to_words();
+        assert_eq!(words.len(), bvh.words_len());
+        // Written from its pieces (as a fork node writes a segment), the same words.
+        let head = bvh.walk_header();
+        assert_eq!(bvh.word_pieces(&head).concat(), words);
         let (block, start, end) = aligned_block(&words);
         let read = Bvh8::in_block(block, start, end, tris).unwrap();
         assert_eq!(&read, bvh);
