@@ -3,7 +3,7 @@
 //! both BVH levels, lights, texture tiles) off the runtime, so that this node keeps
 //! forwarding meanwhile, and its chunks and tiles are placed round-robin on the fork nodes.
 
-use std::sync::Arc;
+use std::{borrow::Cow, sync::Arc};
 
 use protocol::{DataId, Frame, Message, NodeId, bytes_to_words, decode_value, encode_value};
 use renderer::{MemoryData, PrepareOptions, SceneDesc, SceneHeader};
@@ -101,6 +101,22 @@ impl SceneAssembly {
             Ok(None)
         }
     }
+
+    /// The parts' bytes in order: a scene of one part where it came, one of several joined
+    /// once.
+    fn bytes(&self) -> Cow<'_, [u8]> {
+        match &self.parts[..] {
+            [Some(only)] => Cow::Borrowed(only.bytes()),
+            parts => {
+                let len = parts.iter().flatten().map(|p| p.len).sum();
+                let mut all = Vec::with_capacity(len);
+                for p in parts.iter().flatten() {
+                    all.extend_from_slice(p.bytes());
+                }
+                Cow::Owned(all)
+            }
+        }
+    }
 }
 
 /// Why the scene the host sent cannot be prepared.
@@ -121,27 +137,14 @@ pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(SceneHeader, MemoryData
         total: 0,
         chunk_triangles: 0,
     });
-    let got: u64 = a.parts.iter().flatten().map(|p| p.len as u64).sum();
-    if got != of.total {
+    let bytes = a.bytes();
+    if bytes.len() as u64 != of.total {
         return Err(PrepareError::Size {
-            got,
+            got: bytes.len() as u64,
             expected: of.total,
         });
     }
-    // A scene of one part is decoded where it came; one of several is joined once.
-    let joined: Vec<u8>;
-    let bytes = match &a.parts[..] {
-        [Some(only)] => only.bytes(),
-        parts => {
-            let mut all = Vec::with_capacity(got as usize);
-            for p in parts.iter().flatten() {
-                all.extend_from_slice(p.bytes());
-            }
-            joined = all;
-            &joined[..]
-        }
-    };
-    let desc: SceneDesc = decode_value(bytes)?;
+    let desc: SceneDesc = decode_value(&bytes)?;
     desc.validate()?;
     let opts = PrepareOptions {
         chunk_triangles: (of.chunk_triangles as usize).max(1),
@@ -320,13 +323,7 @@ mod tests {
     };
 
     fn bytes(whole: &SceneAssembly) -> Vec<u8> {
-        whole
-            .parts
-            .iter()
-            .flatten()
-            .flat_map(Part::bytes)
-            .copied()
-            .collect()
+        whole.bytes().into_owned()
     }
 
     /// `bytes` as a part arrives: in a frame's words.

@@ -488,13 +488,13 @@ pub struct WalkPlace {
 /// Words before the nodes in the block form: magic, node count, leaf count, then zeros up to
 /// a node's alignment, so that nodes that start 64-byte aligned stay so.
 const WALK_HEADER_WORDS: usize = 16;
+const WALK_MAGIC: u32 = u32::from_le_bytes(*b"MGW8");
+const NODE_WORDS: usize = size_of::<Node8>() / 4;
+const TRI4_WORDS: usize = size_of::<Tri4>() / 4;
 
 /// The first words of a tree's walking form ([`Bvh8::walk_header`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct WalkHeader([u32; WALK_HEADER_WORDS]);
-const WALK_MAGIC: u32 = u32::from_le_bytes(*b"MGW8");
-const NODE_WORDS: usize = size_of::<Node8>() / 4;
-const TRI4_WORDS: usize = size_of::<Tri4>() / 4;
 
 /// Words of a walking form of `nodes` nodes and `leaves` leaf blocks (see [`Bvh8::to_words`]).
 fn walk_words(nodes: usize, leaves: usize) -> usize {
@@ -755,7 +755,7 @@ impl Bvh8 {
     /// This tree as words, for a block that [`Bvh8::in_block`] reads in place: a header,
     /// the nodes, the leaves. Placed at a 64-byte aligned word, its nodes are aligned too.
     pub fn to_words(&self) -> Vec<u32> {
-        self.with_word_parts(|parts| parts.concat())
+        self.word_pieces(&self.walk_header()).concat()
     }
 
     /// How many words [`Bvh8::to_words`] gives.
@@ -766,19 +766,11 @@ impl Bvh8 {
     /// Writes what [`Bvh8::to_words`] gives into `out`, which must be
     /// [`Bvh8::words_len`] words long.
     pub fn write_words(&self, out: &mut [u32]) {
-        self.with_word_parts(|parts| {
-            let mut at = 0;
-            for part in parts {
-                out[at..at + part.len()].copy_from_slice(part);
-                at += part.len();
-            }
-        })
-    }
-
-    /// `f` of the words of [`Bvh8::to_words`] in their three parts: header, nodes, leaves.
-    fn with_word_parts<R>(&self, f: impl FnOnce([&[u32]; 3]) -> R) -> R {
-        let head = self.walk_header();
-        f(self.word_pieces(&head))
+        let mut at = 0;
+        for piece in self.word_pieces(&self.walk_header()) {
+            out[at..at + piece.len()].copy_from_slice(piece);
+            at += piece.len();
+        }
     }
 
     /// The header that [`Bvh8::to_words`] begins with.
