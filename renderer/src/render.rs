@@ -36,8 +36,9 @@ pub struct RenderSettings {
     /// Samples every pixel takes before adaptive sampling may stop it.
     pub min_spp: u32,
     pub whitted: WhittedLimits,
-    /// The path tracer's light by more than one bounce is limited to this (largest channel)
-    /// per sample; 0 (the default) leaves it unbiased. See `integrator::clamped`.
+    /// The path tracer's light found by a caustic path (a rough bounce, then mirrors or
+    /// glass, then the light) is limited to this (largest channel) per sample; 0 (the
+    /// default) leaves it unbiased. See `integrator::clamped`.
     pub clamp_indirect: f32,
 }
 

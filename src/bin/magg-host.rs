@@ -80,8 +80,8 @@ enum ExperimentCmd {
     /// Figures 1.12 to 1.15: T(1)/T(n) against the number of render nodes, batch and demand
     /// transfer (simulated to 1000 render nodes, with measured points).
     Speedup(ScalingArgs),
-    /// Every experiment at its default size and one report.md linking them (about 15 minutes
-    /// on 2 cores).
+    /// Every experiment at its default size and one report.md linking them (about 4 to 5
+    /// minutes on 2 cores).
     All(AllArgs),
 }
 
@@ -497,9 +497,10 @@ struct RenderArgs {
     /// Adaptive sampling: stop a pixel once its relative standard error is below this (0: off).
     #[arg(long, default_value_t = 0.0)]
     noise_threshold: f32,
-    /// Biased: limit light that arrives by more than one bounce to this value per sample
-    /// (largest channel), which removes fireflies along with some caustic light. 0: off, the
-    /// default for scene files; the built-in demo scene uses 8 when denoised, else 4.
+    /// Biased: limit light found by a caustic path (a rough bounce, then mirrors or glass,
+    /// then the light) to this value per sample (largest channel), which removes fireflies
+    /// along with some caustic light. 0: off, the default for scene files; the built-in demo
+    /// scene uses 8 when denoised, else 4.
     #[arg(long)]
     clamp_indirect: Option<f32>,
     /// Biased: filter the finished image with an edge-aware denoiser guided by the albedo,
@@ -781,7 +782,7 @@ fn sampling(args: &RenderArgs) -> Result<Sampling> {
         let mut biased = Vec::new();
         if args.clamp_indirect.is_none() && clamp > 0.0 {
             biased.push(format!(
-                "light by more than one bounce clamped at {clamp} (hides caustic fireflies; \
+                "caustic light clamped at {clamp} (hides its fireflies; \
                  --clamp-indirect 0 renders it unbiased)"
             ));
         }
