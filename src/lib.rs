@@ -109,13 +109,19 @@ fn one_heap() {
 
 /// Starts logging to stderr at `filter` (a level or RUST_LOG syntax).
 pub fn init_logging(filter: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_new(filter)
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let (parsed, refused) = match tracing_subscriber::EnvFilter::try_new(filter) {
+        Ok(f) => (f, None),
+        Err(e) => (tracing_subscriber::EnvFilter::new("info"), Some(e)),
+    };
     let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
+        .with_env_filter(parsed)
         .with_writer(std::io::stderr)
         .with_target(false)
         .try_init();
+    // Said once logging is up, so that a mistyped --log or MAGG_LOG is not silently `info`.
+    if let Some(e) = refused {
+        tracing::warn!("the log filter {filter:?} is not one ({e}): logging at info");
+    }
 }
 
 /// How a process learns the cluster secret: a file, the environment, or (discouraged, it
@@ -150,6 +156,51 @@ impl SecretArgs {
     }
 }
 
+/// The longest wait a flag may ask for: a year. Longer ones (a typing slip) overflowed the
+/// clock's deadline and ended the process in a panic.
+pub const MOST_WAIT_SECONDS: u64 = 365 * 24 * 3600;
+
+/// The most threads a flag may ask for (more than any machine's cores; far more would only
+/// fail to start, or take the memory of their bookkeeping).
+pub const MOST_THREADS: usize = 4096;
+
+/// Parses whole seconds to wait, 0 to [`MOST_WAIT_SECONDS`].
+pub fn wait_seconds(s: &str) -> Result<u64, String> {
+    let v: u64 = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a whole number of seconds"))?;
+    if v > MOST_WAIT_SECONDS {
+        return Err(format!(
+            "{v} seconds is more than a year ({MOST_WAIT_SECONDS})"
+        ));
+    }
+    Ok(v)
+}
+
+/// Parses seconds, possibly fractional, 0 to [`MOST_WAIT_SECONDS`].
+pub fn fractional_seconds(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of seconds"))?;
+    if !(0.0..=MOST_WAIT_SECONDS as f64).contains(&v) {
+        return Err(format!(
+            "{s} seconds: give 0 to {MOST_WAIT_SECONDS} (a year)"
+        ));
+    }
+    Ok(v)
+}
+
+/// Parses a number of threads, 1 to [`MOST_THREADS`].
+pub fn thread_count(s: &str) -> Result<usize, String> {
+    let v: usize = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of threads"))?;
+    if !(1..=MOST_THREADS).contains(&v) {
+        return Err(format!("{v} threads: give 1 to {MOST_THREADS}"));
+    }
+    Ok(v)
+}
+
 /// Flags of a fork or render node.
 #[derive(Args, Clone, Debug)]
 pub struct NodeArgs {
@@ -169,7 +220,7 @@ pub struct NodeArgs {
     #[arg(long, env = "MAGG_CLUSTER_ID", default_value = fabric::cluster::DEFAULT_CLUSTER_ID)]
     pub cluster_id: String,
     /// Seconds to wait for the cluster to form.
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 120, value_parser = wait_seconds)]
     pub timeout: u64,
     /// Exit when the process that started this one exits (set by the host when it spawns).
     #[arg(long, hide = true)]

@@ -178,6 +178,47 @@ fn mistakes_are_one_clear_line() {
         &png,
         "auto, on or off",
     );
+    // Numbers beyond what any use needs, which overflowed a deadline, a duration or an
+    // allocation and ended in a panic or an abort.
+    let huge = "18446744073709551615";
+    expect_error(&["render", "--checkpoint-every", "1e30"], &png, "a year");
+    expect_error(&["render", "--checkpoint-every", "inf"], &png, "a year");
+    expect_error(
+        &["render", "--join-timeout", huge],
+        &png,
+        "more than a year",
+    );
+    expect_error(&["render", "--threads", huge], &png, "give 1 to 4096");
+    expect_error(&["render", "--render-threads", "0"], &png, "1..=4096");
+    expect_error(
+        &["render", "--chunk-triangles", "4294967296"],
+        &png,
+        "give 1 to 4294967295",
+    );
+    let o = run(host().args(["bench", "--triangles", huge]));
+    let err = stderr(&o);
+    assert!(
+        !o.status.success() && err.contains("give 1 to 100000000"),
+        "{err}"
+    );
+    for node in [
+        env!("CARGO_BIN_EXE_magg-render-node"),
+        env!("CARGO_BIN_EXE_magg-fork-node"),
+    ] {
+        let o = run(std::process::Command::new(node).args([
+            "--join",
+            "127.0.0.1:1",
+            "--timeout",
+            huge,
+        ]));
+        let err = stderr(&o);
+        assert!(
+            !o.status.success() && err.contains("more than a year"),
+            "{err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err:?}");
+    }
     // A file that is not glTF at all.
     let junk = dir.join("junk.gltf");
     std::fs::write(&junk, b"this is not json").unwrap();
@@ -210,6 +251,25 @@ fn mistakes_are_one_clear_line() {
         "waited {:?} for nodes that never came",
         began.elapsed()
     );
+}
+
+/// A log filter that does not parse is said once, and the command goes on at `info` (it
+/// fell back silently).
+#[test]
+fn a_log_filter_that_is_not_one_is_said() {
+    let dir = scratch("log-filter");
+    let out = dir.join("l.png");
+    let o = run(host()
+        .args(["--log", "info,=[", "render", "--in-process", "--width", "8"])
+        .args(["--height", "8", "--spp", "1", "-o"])
+        .arg(&out));
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains(r#"the log filter "info,=[" is not one"#),
+        "{err}"
+    );
+    assert!(out.exists());
 }
 
 #[test]

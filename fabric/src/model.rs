@@ -18,7 +18,7 @@
 //! | `dma_bytes_per_us` | 20 | a 64-bit DMA bus between 1991 memories: tens of MB/s |
 //! | `gbus_setup_us` | 5 | bus arbitration |
 //! | `gbus_bytes_per_us` | 84 | the paper: "the transfer rate is up to 84MB/sec" |
-//! | `gbus_count` | 2 | the paper: "2 independent busses called G-bus", round-robin arbitration |
+//! | `gbus_count` | 2 | the paper: "2 independent busses called G-bus", round-robin arbitration (1 to [`MAX_GBUSES`]) |
 //! | `link_bytes_per_us` | 1.74 | a T800 link at 20 Mbit/s moves about 1.74 MB/s of data |
 //!
 //! `time_scale` multiplies every modelled delay: a CPU thousands of times faster than a T800
@@ -62,9 +62,14 @@ pub enum ModelError {
     Negative { name: &'static str, value: String },
     #[error("model.packet_data_bytes must be between 1 and packet_bytes")]
     PacketData,
-    #[error("model.gbus_count must be at least 1")]
-    NoGbus,
+    #[error("model.gbus_count must be 1 to {MAX_GBUSES}, not {0}")]
+    GbusCount(u32),
 }
+
+/// The most G-buses a model may have. The paper's machine had two; every transfer looks at
+/// each bus for the one free first, and each bus is a slot of memory on every fork node, so
+/// a count in the billions (a typing slip) would take the memory and stall every transfer.
+pub const MAX_GBUSES: u32 = 64;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -140,8 +145,8 @@ impl ModelParams {
         if self.packet_data_bytes == 0 || self.packet_data_bytes > self.packet_bytes {
             return Err(ModelError::PacketData);
         }
-        if self.gbus_count == 0 {
-            return Err(ModelError::NoGbus);
+        if self.gbus_count == 0 || self.gbus_count > MAX_GBUSES {
+            return Err(ModelError::GbusCount(self.gbus_count));
         }
         Ok(())
     }
@@ -284,6 +289,34 @@ impl Buses {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// No G-bus, or billions of them (a file's typing slip, which took 32 GB on every fork
+    /// node), is refused with the count.
+    #[test]
+    fn gbus_counts_outside_one_to_the_most_are_refused() {
+        for (count, ok) in [
+            (0, false),
+            (1, true),
+            (MAX_GBUSES, true),
+            (MAX_GBUSES + 1, false),
+            (4_000_000_000, false),
+        ] {
+            let p = ModelParams {
+                gbus_count: count,
+                ..ModelParams::default()
+            };
+            match p.check() {
+                Ok(()) => assert!(ok, "{count} taken"),
+                Err(e) => {
+                    assert!(!ok, "{count}: {e}");
+                    assert_eq!(
+                        e.to_string(),
+                        format!("model.gbus_count must be 1 to 64, not {count}")
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn formula_decomposes_into_hops() {

@@ -125,14 +125,29 @@ pub fn render_entry(path: &Path, c: &GalleryConfig) -> Entry {
     }
 }
 
+/// A contact sheet's longest side: 32768 pixels, as for a render.
+const MAX_SHEET_SIDE: u64 = 32768;
+
 /// Lays the entries out on a sheet and writes it as PNG.
 pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), crate::LabError> {
-    let cols = c.columns.max(1);
+    // More columns than pictures only widen the sheet with empty cells.
+    let cols = c.columns.clamp(1, (entries.len() as u32).max(1));
     let rows = (entries.len() as u32).div_ceil(cols).max(1);
     let label = 34;
-    let (cell_w, cell_h) = (c.size + 8, c.size + label);
-    let (w, h) = (cols * cell_w + 8, rows * cell_h + 8);
-    let mut buf = vec![40u8; (w * h * 3) as usize];
+    // The sheet's sides in u64, so that a large --size or many pictures are refused below
+    // instead of wrapping.
+    let (cell_w, cell_h) = (u64::from(c.size) + 8, u64::from(c.size) + label);
+    let (w64, h64) = (u64::from(cols) * cell_w + 8, u64::from(rows) * cell_h + 8);
+    if w64 > MAX_SHEET_SIDE || h64 > MAX_SHEET_SIDE {
+        return Err(crate::LabError::Draw(format!(
+            "a contact sheet of {w64}x{h64} pixels ({} pictures of {} pixels, {cols} columns): \
+             at most {MAX_SHEET_SIDE} a side; use a smaller --size or other --columns",
+            entries.len(),
+            c.size
+        )));
+    }
+    let (w, h, cell_w, cell_h) = (w64 as u32, h64 as u32, cell_w as u32, cell_h as u32);
+    let mut buf = vec![40u8; w as usize * h as usize * 3];
     for (i, e) in entries.iter().enumerate() {
         let (cx, cy) = (
             8 + (i as u32 % cols) * cell_w,
@@ -199,4 +214,46 @@ pub fn gallery(c: &GalleryConfig, progress: &dyn Fn(&str)) -> Result<Vec<Entry>,
     }
     write_sheet(&entries, c)?;
     Ok(entries)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(dir: &Path, size: u32, columns: u32) -> GalleryConfig {
+        GalleryConfig {
+            dir: dir.to_path_buf(),
+            output: dir.join("sheet.png"),
+            size,
+            spp: 1,
+            integrator: IntegratorKind::Path,
+            columns,
+            threads: 1,
+        }
+    }
+
+    fn entry(size: u32) -> Entry {
+        Entry {
+            name: "a".into(),
+            pixels: Some(vec![[0.5; 3]; (size * size) as usize]),
+            note: String::new(),
+            bad_samples: 0,
+        }
+    }
+
+    /// More columns than pictures make a sheet as wide as the pictures (a million columns
+    /// wrapped the sheet's size and indexed past its buffer); a sheet too large to write is
+    /// refused with its size, not allocated.
+    #[test]
+    fn columns_beyond_the_pictures_and_sheets_too_large_are_handled() {
+        let dir = std::env::temp_dir().join(format!("magg-gallery-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let c = config(&dir, 4, 1_028_489);
+        write_sheet(&[entry(4), entry(4)], &c).unwrap();
+        let (w, h) = image::image_dimensions(&c.output).unwrap();
+        assert_eq!((w, h), (2 * (4 + 8) + 8, 4 + 34 + 8));
+        let e = write_sheet(&[entry(4)], &config(&dir, 40_000, 7)).unwrap_err();
+        assert!(e.to_string().contains("at most 32768 a side"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

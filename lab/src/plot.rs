@@ -73,6 +73,12 @@ pub fn log_log_png(
     log_log_marked_png(path, title, x_label, y_label, series, &[])
 }
 
+/// Whether `v` can be placed on a log axis whose ends lie a quarter beyond the values: above
+/// 0, and finite with that room (an axis ending at infinity drew without end).
+fn on_log_axis(v: f64) -> bool {
+    v > 0.0 && v <= f64::MAX / 2.0
+}
+
 /// [`log_log_png`] with a second kind of series drawn as marks only (measured points beside
 /// simulated curves); the i-th mark series takes the colour of the i-th line, so a measured
 /// set and its simulated curve match.
@@ -94,7 +100,7 @@ pub fn log_log_marked_png(
             .iter()
             .chain(marks)
             .flat_map(|s| s.1.iter().copied())
-            .filter(|p| p.0 > 0.0 && p.1 > 0.0 && p.1.is_finite())
+            .filter(|p| on_log_axis(p.0) && on_log_axis(p.1))
             .collect();
         if pts.is_empty() {
             return Err(crate::LabError::NothingToPlot);
@@ -193,4 +199,31 @@ pub fn transfers_png(
         }
     }
     log_log_png(path, title, "data size (bytes)", "time (us)", &series)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A point too large to give its axis a finite end (a peer's wall time of 1e308 s) is
+    /// left out; the plot of the others is drawn (it hung), and a plot of no plottable
+    /// point says so.
+    #[test]
+    fn points_no_log_axis_can_hold_are_left_out() {
+        let dir = std::env::temp_dir().join(format!("magg-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.png");
+        let series = vec![(
+            "a".to_string(),
+            vec![(1.0, 0.5), (2.0, 0.25), (1e308, 0.1), (f64::INFINITY, 0.1)],
+        )];
+        log_log_png(&path, "t", "x", "y", &series).unwrap();
+        assert!(path.exists());
+        let none = vec![("a".to_string(), vec![(1e308, 0.5), (-1.0, f64::NAN)])];
+        assert!(matches!(
+            log_log_png(&path, "t", "x", "y", &none),
+            Err(crate::LabError::NothingToPlot)
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -73,6 +73,13 @@ pub enum SimulateError {
         "the stats file's {name} {value:?} is not one the simulator knows; give it with --{name}"
     )]
     Unknown { name: &'static str, value: String },
+    #[error(
+        "a subscreen record names node {node}, which is not a render node of topology {topology}"
+    )]
+    NotARenderNode {
+        node: protocol::NodeId,
+        topology: String,
+    },
 }
 
 /// A prediction beside the measurement, with the settings it was made under.
@@ -276,6 +283,17 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
     let mut records = serde_json::from_str::<Records>(stats_json)
         .map_err(sim::WorkloadError::Json)?
         .subscreens;
+    // Each record's node is looked up in the topology below: one that names no render node
+    // of it (a file edited, or of another render) is refused, not indexed.
+    let topology = Topology::resolve(&bare.topology_name)?;
+    if let Some(r) = records.iter().find(|r| {
+        (r.node as usize) >= topology.len() || topology.role(r.node) != protocol::Role::Render
+    }) {
+        return Err(SimulateError::NotARenderNode {
+            node: r.node,
+            topology: bare.topology_name.clone(),
+        });
+    }
     // The replay numbers the recorded subscreens as the workload orders them.
     records.sort_by_key(|r| (r.y, r.x));
     // The first handout to each render node: the first wave, as long as the job took to
@@ -307,7 +325,6 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
     // Hops on each span's critical path: the answer from the host; per recorded fetch the
     // request to the fork node and the reply (one); the last scan line to the fork node and
     // its pass to the host (one).
-    let topology = Topology::resolve(&bare.topology_name)?;
     let mut hops: u64 = 0;
     for r in &records {
         let fork = topology.fork_of(r.node).unwrap_or(0);
@@ -483,6 +500,23 @@ mod tests {
             (spans - m.recorded_spans_s).abs() < 0.01 * m.recorded_spans_s,
             "{spans} vs {m:?}"
         );
+    }
+
+    /// A record naming a node the topology lacks, or one that is not a render node, is
+    /// refused with its number (node 99 was an index out of bounds).
+    #[test]
+    fn overheads_of_records_naming_no_render_node_are_refused() {
+        for (node, was) in [(99, r#""node": 5,"#), (1, r#""node": 5,"#)] {
+            let odd = stats().replace(was, &format!(r#""node": {node},"#));
+            assert_ne!(odd, stats());
+            let e = measure_overheads(&odd).unwrap_err();
+            assert!(
+                e.to_string().contains(&format!(
+                    "node {node}, which is not a render node of topology tiny"
+                )),
+                "{e}"
+            );
+        }
     }
 
     #[test]

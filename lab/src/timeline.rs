@@ -43,6 +43,13 @@ impl RenderRecords {
         if records.subscreens.is_empty() {
             return Err(bad("it holds no subscreen records".into()));
         }
+        // As a render's image is: one pixel to 32768 a side.
+        if !(1..=32768).contains(&records.width) || !(1..=32768).contains(&records.height) {
+            return Err(bad(format!(
+                "its image is {}x{}: no render has that size",
+                records.width, records.height
+            )));
+        }
         Ok(records)
     }
 
@@ -236,8 +243,8 @@ pub fn tinted_png(
         let c = node_colour(&nodes, r.node);
         let c = [c.0, c.1, c.2];
         let (x1, y1) = (
-            (r.x + r.width).min(image.width) as usize,
-            (r.y + r.height).min(image.height) as usize,
+            r.x.saturating_add(r.width).min(image.width) as usize,
+            r.y.saturating_add(r.height).min(image.height) as usize,
         );
         for y in r.y as usize..y1 {
             for x in r.x as usize..x1 {
@@ -299,6 +306,27 @@ mod tests {
                 grey && r > 40 && r < 190
             })
             .count()
+    }
+
+    /// A stats file whose image has no pixels (or more than a render can have) is refused
+    /// when read: plotting a 0x0 image divided by zero.
+    #[test]
+    fn stats_of_an_image_no_render_has_are_refused() {
+        let dir = std::env::temp_dir().join(format!("magg-records-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("zero.json");
+        for (w, h) in [(0, 0), (16, 0), (40_000, 16)] {
+            let json = serde_json::json!({
+                "output": "z.pfm",
+                "width": w,
+                "height": h,
+                "subscreens": [record(3, 0, 0.0, 0.5, 0)],
+            });
+            std::fs::write(&path, json.to_string()).unwrap();
+            let e = RenderRecords::read(&path).unwrap_err().to_string();
+            assert!(e.contains(&format!("its image is {w}x{h}")), "{e}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -163,6 +163,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     Ok(())
 }
 
+/// The longest side of an EXR image read: a render's longest (32768).
+const MAX_READ_SIDE: usize = 32768;
+
 /// Reads an image written by magg or another renderer (PNG is sRGB-decoded to linear).
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     let format = Format::of(path).ok_or_else(|| ImageError::UnknownFormat { path: path.into() })?;
@@ -197,6 +200,18 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
         }
         Format::Exr => {
             use exr::prelude::*;
+            // The reader allocates the pixels for the size the header declares before it
+            // reads any: a header is checked first, as a render's size is.
+            let meta = exr::meta::MetaData::read_from_file(path, false)
+                .map_err(|e| decode(e.to_string()))?;
+            if let Some(size) = (meta.headers.iter().map(|h| h.layer_size))
+                .find(|s| s.0 > MAX_READ_SIDE || s.1 > MAX_READ_SIDE)
+            {
+                return Err(decode(format!(
+                    "a layer of {}x{} pixels: at most {MAX_READ_SIDE} a side",
+                    size.0, size.1
+                )));
+            }
             let img = read_first_rgba_layer_from_file(
                 path,
                 |res: Vec2<usize>, _| (res.0, vec![[0f32; 3]; res.0 * res.1]),
@@ -331,6 +346,30 @@ mod tests {
             write_image(&p, &img).unwrap();
             assert_eq!(read_image(&p).unwrap(), img, "{name}");
         }
+        let _ = fs::remove_dir_all(&dir);
+    }
+
+    /// An EXR whose header declares a data window of a million pixels a side (12 TB of
+    /// pixels, which the reader allocated and the process aborted on) is refused.
+    #[test]
+    fn an_exr_declaring_a_huge_image_is_refused() {
+        let dir = std::env::temp_dir().join(format!("magg-img-huge-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("huge.exr");
+        write_image(&p, &gradient()).unwrap();
+        let mut bytes = fs::read(&p).unwrap();
+        // The attribute's name and type, its size (16), then x min, y min, x max, y max.
+        let key = b"dataWindow\0box2i\0";
+        let at = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len() + 4;
+        for (k, v) in [0i32, 0, 999_999, 999_999].iter().enumerate() {
+            bytes[at + 4 * k..at + 4 * k + 4].copy_from_slice(&v.to_le_bytes());
+        }
+        fs::write(&p, &bytes).unwrap();
+        let e = read_image(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("1000000x1000000 pixels: at most 32768 a side"),
+            "{e}"
+        );
         let _ = fs::remove_dir_all(&dir);
     }
 

@@ -135,10 +135,15 @@ pub enum WorkloadError {
     Subscreen { index: usize, reason: String },
     #[error("the image is {width}x{height}; it needs at least one pixel")]
     EmptyImage { width: u32, height: u32 },
+    #[error("the image is {width}x{height}; a render is at most {MAX_SIDE} pixels a side")]
+    TooLarge { width: u32, height: u32 },
 }
 
 /// One subscreen as a render's stats record it (the fields the simulator reads; the others
 /// are there to compare with).
+/// The longest side of an image magg renders (the host refuses larger ones).
+const MAX_SIDE: u32 = 32768;
+
 #[derive(Clone, Debug, Deserialize)]
 struct Record {
     x: u32,
@@ -182,14 +187,14 @@ impl Workload {
         let width = file.width.unwrap_or_else(|| {
             file.subscreens
                 .iter()
-                .map(|r| r.x + r.width)
+                .map(|r| r.x.saturating_add(r.width))
                 .max()
                 .unwrap_or(0)
         });
         let height = file.height.unwrap_or_else(|| {
             file.subscreens
                 .iter()
-                .map(|r| r.y + r.height)
+                .map(|r| r.y.saturating_add(r.height))
                 .max()
                 .unwrap_or(0)
         });
@@ -251,6 +256,14 @@ impl Workload {
     pub fn check(&self) -> Result<(), WorkloadError> {
         if self.width == 0 || self.height == 0 {
             return Err(WorkloadError::EmptyImage {
+                width: self.width,
+                height: self.height,
+            });
+        }
+        // What no render can have made: a stats file of a billion rows is not simulated
+        // with a list per row.
+        if self.width > MAX_SIDE || self.height > MAX_SIDE {
+            return Err(WorkloadError::TooLarge {
                 width: self.width,
                 height: self.height,
             });
@@ -481,6 +494,16 @@ mod tests {
             (
                 r#"{"subscreens": [{"x": 0, "y": 0, "width": 2, "height": 1, "cpu_s": -1}], "chunk_bytes": [1], "tile_bytes": []}"#,
                 "not a time",
+            ),
+            // Refused before the simulator makes a list per row (48 GB for this one).
+            (
+                r#"{"width": 2, "height": 2000000000, "subscreens": [{"x": 0, "y": 0, "width": 2, "height": 1, "cpu_s": 1}], "chunk_bytes": [], "tile_bytes": []}"#,
+                "at most 32768 pixels a side",
+            ),
+            // Records reaching past u32 without an image size: refused, not wrapped.
+            (
+                r#"{"subscreens": [{"x": 4294967295, "y": 0, "width": 2, "height": 1, "cpu_s": 1}], "chunk_bytes": [], "tile_bytes": []}"#,
+                "at most 32768 pixels a side",
             ),
         ];
         for (text, needle) in cases {

@@ -215,7 +215,7 @@ struct ClusterArgs {
     #[arg(long, env = "MAGG_CLUSTER_ID", default_value = fabric::cluster::DEFAULT_CLUSTER_ID)]
     cluster_id: String,
     /// Seconds to wait for the cluster to form.
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 120, value_parser = magg::wait_seconds)]
     join_timeout: u64,
     /// Log level of spawned nodes.
     #[arg(long, default_value = "warn")]
@@ -316,6 +316,30 @@ struct GalleryArgs {
     columns: u32,
 }
 
+/// Parses the most triangles of a chunk, 1 to 2^32 - 1: the cluster sends the number to the
+/// first fork node in 32 bits, so a larger one would chunk the scene otherwise there than in
+/// one process.
+fn chunk_size(s: &str) -> Result<usize, String> {
+    let v: usize = s
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of triangles"))?;
+    if !(1..=u32::MAX as usize).contains(&v) {
+        return Err(format!("{v}: give 1 to {}", u32::MAX));
+    }
+    Ok(v)
+}
+
+/// Parses a benchmark's size, 1 to 100 million: far larger ones take more memory than a
+/// machine has, and aborted on allocation.
+fn bench_count(s: &str) -> Result<usize, String> {
+    const MOST: usize = 100_000_000;
+    let v: usize = s.parse().map_err(|_| format!("{s:?} is not a count"))?;
+    if !(1..=MOST).contains(&v) {
+        return Err(format!("{v}: give 1 to {MOST}"));
+    }
+    Ok(v)
+}
+
 #[derive(Subcommand)]
 enum BenchCmd {
     /// Cast the rays of a file into a mesh on one thread, as render does: rays per second
@@ -338,7 +362,7 @@ struct WhittedArgs {
     height: u32,
     #[arg(long, default_value_t = 4)]
     spp: u32,
-    #[arg(long)]
+    #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
     /// Also write the figures as JSON.
     #[arg(long)]
@@ -360,7 +384,7 @@ struct RaysArgs {
     /// Any hit instead of the closest (shadow rays: stop at the first opaque surface).
     #[arg(long)]
     any_hit: bool,
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
     chunk_triangles: usize,
     /// Also write the figures as JSON.
     #[arg(long)]
@@ -376,8 +400,8 @@ struct BenchArgs {
     /// A glTF file to use as the big mesh (default: a procedural mesh).
     #[arg(long)]
     mesh: Option<PathBuf>,
-    /// Triangles in the procedural mesh.
-    #[arg(long, default_value_t = 1_100_000)]
+    /// Triangles in the procedural mesh (at most 100 million).
+    #[arg(long, default_value_t = 1_100_000, value_parser = bench_count)]
     triangles: usize,
     /// The Cornell box scene, for samples per second.
     #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
@@ -388,12 +412,12 @@ struct BenchArgs {
         default_value = "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
     )]
     textured: PathBuf,
-    /// Rays per measurement.
-    #[arg(long, default_value_t = 1_000_000)]
+    /// Rays per measurement (at most 100 million).
+    #[arg(long, default_value_t = 1_000_000, value_parser = bench_count)]
     rays: usize,
-    #[arg(long)]
+    #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
     chunk_triangles: usize,
     /// Also write the figures as JSON.
     #[arg(long)]
@@ -415,7 +439,7 @@ struct RenderArgs {
     #[arg(long)]
     resume: bool,
     /// Seconds between checkpoints of a render in progress (`OUTPUT.partial`).
-    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 10.0, value_name = "SECONDS", value_parser = magg::fractional_seconds)]
     checkpoint_every: f64,
     #[command(flatten)]
     cluster: ClusterArgs,
@@ -450,7 +474,7 @@ struct RenderArgs {
     #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
     time_scale: f64,
     /// Rendering threads per render node.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=magg::MOST_THREADS as i64))]
     render_threads: u32,
     /// Memory-coherent rays on render nodes: on (a path whose data the cache lacks waits
     /// while others go on; each fetch then serves every path waiting for that item), off
@@ -512,13 +536,13 @@ struct RenderArgs {
     #[arg(long)]
     camera: Option<String>,
     /// Rendering threads (default: all cores).
-    #[arg(long)]
+    #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
     /// Write render statistics as JSON.
     #[arg(long)]
     stats: Option<PathBuf>,
     /// Most triangles in one chunk (the unit of shape data moved and cached).
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
     chunk_triangles: usize,
     /// Radiance of the world around the scene, the same from every direction: one number
     /// (grey) or R,G,B. By default a sky (1 above, 0.25 below) when the scene has no lights,
