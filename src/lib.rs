@@ -164,41 +164,35 @@ pub const MOST_WAIT_SECONDS: u64 = 365 * 24 * 3600;
 /// fail to start, or take the memory of their bookkeeping).
 pub const MOST_THREADS: usize = 4096;
 
-/// Parses whole seconds to wait, 0 to [`MOST_WAIT_SECONDS`].
-pub fn wait_seconds(s: &str) -> Result<u64, String> {
-    let v: u64 = s
+/// Parses `s` as a number of `unit` from `lo` to `hi` (`note` said after the range), or says
+/// which it is not: what every bounded flag of the binaries takes.
+pub fn number_in<T>(s: &str, unit: &str, lo: T, hi: T, note: &str) -> Result<T, String>
+where
+    T: std::str::FromStr + PartialOrd + std::fmt::Display,
+{
+    let v: T = s
         .parse()
-        .map_err(|_| format!("{s:?} is not a whole number of seconds"))?;
-    if v > MOST_WAIT_SECONDS {
-        return Err(format!(
-            "{v} seconds is more than a year ({MOST_WAIT_SECONDS})"
-        ));
+        .map_err(|_| format!("{s:?} is not a number of {unit}"))?;
+    // Written so that NaN, which compares false, is outside too.
+    if !(lo <= v && v <= hi) {
+        return Err(format!("{s} {unit}: give {lo} to {hi}{note}"));
     }
     Ok(v)
+}
+
+/// Parses whole seconds to wait, 0 to [`MOST_WAIT_SECONDS`].
+pub fn wait_seconds(s: &str) -> Result<u64, String> {
+    number_in(s, "seconds", 0, MOST_WAIT_SECONDS, " (a year)")
 }
 
 /// Parses seconds, possibly fractional, 0 to [`MOST_WAIT_SECONDS`].
 pub fn fractional_seconds(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .parse()
-        .map_err(|_| format!("{s:?} is not a number of seconds"))?;
-    if !(0.0..=MOST_WAIT_SECONDS as f64).contains(&v) {
-        return Err(format!(
-            "{s} seconds: give 0 to {MOST_WAIT_SECONDS} (a year)"
-        ));
-    }
-    Ok(v)
+    number_in(s, "seconds", 0.0, MOST_WAIT_SECONDS as f64, " (a year)")
 }
 
 /// Parses a number of threads, 1 to [`MOST_THREADS`].
 pub fn thread_count(s: &str) -> Result<usize, String> {
-    let v: usize = s
-        .parse()
-        .map_err(|_| format!("{s:?} is not a number of threads"))?;
-    if !(1..=MOST_THREADS).contains(&v) {
-        return Err(format!("{v} threads: give 1 to {MOST_THREADS}"));
-    }
-    Ok(v)
+    number_in(s, "threads", 1, MOST_THREADS, "")
 }
 
 /// Flags of a fork or render node.

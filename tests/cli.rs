@@ -181,24 +181,36 @@ fn mistakes_are_one_clear_line() {
     // Numbers beyond what any use needs, which overflowed a deadline, a duration or an
     // allocation and ended in a panic or an abort.
     let huge = "18446744073709551615";
-    expect_error(&["render", "--checkpoint-every", "1e30"], &png, "a year");
-    expect_error(&["render", "--checkpoint-every", "inf"], &png, "a year");
+    expect_error(
+        &["render", "--checkpoint-every", "1e30"],
+        &png,
+        "1e30 seconds: give 0 to 31536000 (a year)",
+    );
+    expect_error(
+        &["render", "--checkpoint-every", "inf"],
+        &png,
+        "inf seconds: give 0",
+    );
     expect_error(
         &["render", "--join-timeout", huge],
         &png,
-        "more than a year",
+        "seconds: give 0 to 31536000 (a year)",
     );
-    expect_error(&["render", "--threads", huge], &png, "give 1 to 4096");
+    expect_error(
+        &["render", "--threads", huge],
+        &png,
+        "threads: give 1 to 4096",
+    );
     expect_error(&["render", "--render-threads", "0"], &png, "1..=4096");
     expect_error(
         &["render", "--chunk-triangles", "4294967296"],
         &png,
-        "give 1 to 4294967295",
+        "4294967296 triangles: give 1 to 4294967295",
     );
     let o = run(host().args(["bench", "--triangles", huge]));
     let err = stderr(&o);
     assert!(
-        !o.status.success() && err.contains("give 1 to 100000000"),
+        !o.status.success() && err.contains("triangles: give 1 to 100000000"),
         "{err}"
     );
     for node in [
@@ -213,7 +225,7 @@ fn mistakes_are_one_clear_line() {
         ]));
         let err = stderr(&o);
         assert!(
-            !o.status.success() && err.contains("more than a year"),
+            !o.status.success() && err.contains("seconds: give 0 to 31536000 (a year)"),
             "{err}"
         );
         assert!(!err.contains("panicked"), "{err}");

@@ -320,24 +320,19 @@ struct GalleryArgs {
 /// first fork node in 32 bits, so a larger one would chunk the scene otherwise there than in
 /// one process.
 fn chunk_size(s: &str) -> Result<usize, String> {
-    let v: usize = s
-        .parse()
-        .map_err(|_| format!("{s:?} is not a number of triangles"))?;
-    if !(1..=u32::MAX as usize).contains(&v) {
-        return Err(format!("{v}: give 1 to {}", u32::MAX));
-    }
-    Ok(v)
+    magg::number_in(s, "triangles", 1, u32::MAX as usize, "")
 }
 
-/// Parses a benchmark's size, 1 to 100 million: far larger ones take more memory than a
-/// machine has, and aborted on allocation.
-fn bench_count(s: &str) -> Result<usize, String> {
-    const MOST: usize = 100_000_000;
-    let v: usize = s.parse().map_err(|_| format!("{s:?} is not a count"))?;
-    if !(1..=MOST).contains(&v) {
-        return Err(format!("{v}: give 1 to {MOST}"));
-    }
-    Ok(v)
+/// A benchmark's size at most: far larger ones take more memory than a machine has, and
+/// aborted on allocation.
+const MOST_BENCH_ITEMS: usize = 100_000_000;
+
+fn triangles_to_bench(s: &str) -> Result<usize, String> {
+    magg::number_in(s, "triangles", 1, MOST_BENCH_ITEMS, "")
+}
+
+fn rays_to_bench(s: &str) -> Result<usize, String> {
+    magg::number_in(s, "rays", 1, MOST_BENCH_ITEMS, "")
 }
 
 #[derive(Subcommand)]
@@ -401,7 +396,7 @@ struct BenchArgs {
     #[arg(long)]
     mesh: Option<PathBuf>,
     /// Triangles in the procedural mesh (at most 100 million).
-    #[arg(long, default_value_t = 1_100_000, value_parser = bench_count)]
+    #[arg(long, default_value_t = 1_100_000, value_parser = triangles_to_bench)]
     triangles: usize,
     /// The Cornell box scene, for samples per second.
     #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
@@ -413,7 +408,7 @@ struct BenchArgs {
     )]
     textured: PathBuf,
     /// Rays per measurement (at most 100 million).
-    #[arg(long, default_value_t = 1_000_000, value_parser = bench_count)]
+    #[arg(long, default_value_t = 1_000_000, value_parser = rays_to_bench)]
     rays: usize,
     #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
