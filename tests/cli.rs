@@ -162,6 +162,22 @@ fn mistakes_are_one_clear_line() {
         Path::new("/etc/hostname/x.png"),
         "does not exist",
     );
+    // An output or stats path that is a folder: said before the render, not after it.
+    let folder = dir.join("folder.png");
+    std::fs::create_dir_all(&folder).unwrap();
+    let o = run(host()
+        .args(["render", "--width", "8", "--height", "8", "-o"])
+        .arg(&folder));
+    assert!(
+        !o.status.success() && stderr(&o).contains("is a folder"),
+        "{}",
+        stderr(&o)
+    );
+    expect_error(
+        &["render", "--stats", folder.to_str().unwrap()],
+        &png,
+        "is a folder",
+    );
     expect_error(&["render", "--cache", "0"], &png, "--cache");
     expect_error(&["render", "--cache", "500"], &png, "--cache");
     expect_error(&["render", "--time-scale", "-1"], &png, "--time-scale");
@@ -202,6 +218,16 @@ fn mistakes_are_one_clear_line() {
         "threads: give 1 to 4096",
     );
     expect_error(&["render", "--render-threads", "0"], &png, "1..=4096");
+    expect_error(
+        &["render", "--time-scale", "1e300"],
+        &png,
+        "at most 1000000, not 1e300",
+    );
+    expect_error(
+        &["render", "--subscreens", "4294967295"],
+        &png,
+        "4294967295 subscreens: give 1 to 1000000",
+    );
     expect_error(
         &["render", "--chunk-triangles", "4294967296"],
         &png,

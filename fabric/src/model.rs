@@ -60,11 +60,21 @@ pub enum ModelError {
     NotPositive { name: &'static str, value: String },
     #[error("model.{name} must be a number of at least 0, not {value}")]
     Negative { name: &'static str, value: String },
+    #[error("model.{name} must be at most {most}, not {value}")]
+    TooLarge {
+        name: &'static str,
+        value: String,
+        most: String,
+    },
     #[error("model.packet_data_bytes must be between 1 and packet_bytes")]
     PacketData,
     #[error("model.gbus_count must be 1 to {MAX_GBUSES}, not {0}")]
     GbusCount(u32),
 }
+
+/// The largest time scale a model may have: a million times the paper's delays (beyond
+/// about 1e10 a transfer's nanoseconds overflow, and the delays silently vanished).
+pub const MOST_TIME_SCALE: f64 = 1e6;
 
 /// The most G-buses a model may have. The paper's machine had two; every transfer looks at
 /// each bus for the one free first, and each bus is a slot of memory on every fork node, so
@@ -119,6 +129,13 @@ impl ModelParams {
             ("dma_bytes_per_us", self.dma_bytes_per_us),
             ("gbus_bytes_per_us", self.gbus_bytes_per_us),
         ];
+        if self.time_scale > MOST_TIME_SCALE {
+            return Err(ModelError::TooLarge {
+                name: "time_scale",
+                value: format!("{:?}", self.time_scale),
+                most: MOST_TIME_SCALE.to_string(),
+            });
+        }
         for (name, v) in pos {
             if !(v.is_finite() && v > 0.0) {
                 return Err(ModelError::NotPositive {
@@ -316,6 +333,21 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A time scale whose delays would overflow the clock (and vanish) is refused.
+    #[test]
+    fn a_time_scale_beyond_the_most_is_refused() {
+        let p = |time_scale| ModelParams {
+            time_scale,
+            ..ModelParams::default()
+        };
+        assert!(p(MOST_TIME_SCALE).check().is_ok());
+        let e = p(1e300).check().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "model.time_scale must be at most 1000000, not 1e300"
+        );
     }
 
     #[test]

@@ -130,7 +130,8 @@ pub const MAX_NODES: usize = 4096;
 impl Topology {
     /// A preset by name, or a TOML file's contents when `spec` names a file.
     pub fn resolve(spec: &str) -> Result<Topology, TopologyError> {
-        if let Ok(t) = Topology::preset(spec) {
+        let preset = Topology::preset(spec);
+        if let Ok(t) = preset {
             return Ok(t);
         }
         let path = std::path::Path::new(spec);
@@ -144,7 +145,11 @@ impl Topology {
                 source: Box::new(e),
             });
         }
-        Err(TopologyError::UnknownPreset(spec.to_string()))
+        match preset {
+            // A grid of numbers the grid refuses (a zero, too many nodes) says why.
+            Err(e) if spec.starts_with("grid:") => Err(e),
+            _ => Err(TopologyError::UnknownPreset(spec.to_string())),
+        }
     }
 
     pub fn preset(name: &str) -> Result<Topology, TopologyError> {
@@ -562,6 +567,23 @@ fn grid_layout(g: Grid) -> Result<(Vec<NodeSpec>, Vec<[NodeId; 2]>), TopologyErr
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A grid the grid refuses says why, not that no such preset exists; a name that is
+    /// neither a grid nor a file is an unknown preset.
+    #[test]
+    fn a_grid_that_cannot_be_says_why() {
+        let e = Topology::resolve("grid:1x64x64").unwrap_err().to_string();
+        assert!(
+            e.contains("4098 nodes is more than the 4096 supported"),
+            "{e}"
+        );
+        let e = Topology::resolve("grid:0x1x1").unwrap_err().to_string();
+        assert!(e.contains("at least one card"), "{e}");
+        let e = Topology::resolve("grid:axb").unwrap_err().to_string();
+        assert!(e.contains("unknown topology preset"), "{e}");
+        let e = Topology::resolve("no-such").unwrap_err().to_string();
+        assert!(e.contains("unknown topology preset"), "{e}");
+    }
 
     #[test]
     fn magg_preset_is_the_papers_machine() {

@@ -128,6 +128,16 @@ pub(crate) enum PrepareError {
     Decode(#[from] protocol::DecodeError),
     #[error("the scene description is invalid: {0}")]
     Invalid(#[from] renderer::scene::SceneError),
+    #[error(
+        "chunk {chunk} is {bytes} bytes, more than the {limit} bytes a frame carries between \
+         processes; render with --chunk-triangles {fits} or fewer"
+    )]
+    ChunkTooLarge {
+        chunk: usize,
+        bytes: u64,
+        limit: u32,
+        fits: u64,
+    },
 }
 
 /// Decodes the assembled scene description and prepares it.
@@ -149,7 +159,33 @@ pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(SceneHeader, MemoryData
     let opts = PrepareOptions {
         chunk_triangles: (of.chunk_triangles as usize).max(1),
     };
-    Ok(renderer::prepare(desc, &opts))
+    let (header, data) = renderer::prepare(desc, &opts);
+    chunks_fit_frames(&header, opts.chunk_triangles, protocol::MAX_DATA)?;
+    Ok((header, data))
+}
+
+/// Every chunk may have to cross a socket in one frame of at most `limit` bytes of data (to a
+/// card or a render node on another machine, or by serial link): a scene with one that
+/// cannot is refused before any chunk is placed, instead of ending the connection that would
+/// carry it, with a chunk size that fits (the scene was cut at `chunk_triangles`).
+fn chunks_fit_frames(
+    header: &SceneHeader,
+    chunk_triangles: usize,
+    limit: u32,
+) -> Result<(), PrepareError> {
+    let largest = (header.chunks.iter().enumerate()).max_by_key(|(_, c)| c.byte_len);
+    match largest {
+        Some((chunk, c)) if c.byte_len > limit => {
+            let fits = chunk_triangles as u64 * u64::from(limit) / u64::from(c.byte_len);
+            Err(PrepareError::ChunkTooLarge {
+                chunk,
+                bytes: u64::from(c.byte_len),
+                limit,
+                fits: fits.max(1),
+            })
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Which fork node holds each of `count` items: round-robin, so that every card holds a
@@ -414,6 +450,29 @@ mod tests {
         let (scene, data) = prepare_scene(whole).unwrap();
         assert_eq!(scene.chunks.len(), data.chunks.len());
         assert_eq!(scene.triangle_count(), desc.triangle_count() as u64);
+    }
+
+    /// A chunk larger than a frame carries is refused with a chunk size that fits (a render
+    /// with 1.6 M triangles a chunk lost every connection that carried one, and waited).
+    #[test]
+    fn chunks_larger_than_a_frame_are_refused_with_a_size_that_fits() {
+        let desc = renderer::demo::demo_scene();
+        let (scene, _) = renderer::prepare(
+            desc,
+            &PrepareOptions {
+                chunk_triangles: 64,
+            },
+        );
+        assert!(chunks_fit_frames(&scene, 64, protocol::MAX_DATA).is_ok());
+        let largest = scene.chunks.iter().map(|c| c.byte_len).max().unwrap();
+        let e = chunks_fit_frames(&scene, 64, largest - 4).unwrap_err();
+        let fits = 64 * u64::from(largest - 4) / u64::from(largest);
+        assert!(fits < 64);
+        assert!(
+            e.to_string()
+                .contains(&format!("render with --chunk-triangles {fits} or fewer")),
+            "{e}"
+        );
     }
 
     #[test]

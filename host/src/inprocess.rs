@@ -113,6 +113,14 @@ pub fn check_output(path: &std::path::Path) -> Result<(), RenderError> {
 }
 
 fn check_writable_dir(path: &std::path::Path) -> Result<(), RenderError> {
+    // A file is written by renaming a temporary one over it: onto a folder that fails, and
+    // only once the render is done.
+    if path.is_dir() {
+        return Err(RenderError::Settings(format!(
+            "{}: is a folder, not a file to write",
+            path.display()
+        )));
+    }
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),

@@ -82,6 +82,17 @@ pub fn all(
     dir: &Path,
     only: &[String],
 ) -> Result<Vec<PartResult>, crate::LabError> {
+    // A name that is no experiment ran nothing and reported success.
+    if let Some(unknown) = only
+        .iter()
+        .find(|o| PARTS.iter().all(|p| p.name != o.as_str()))
+    {
+        let names: Vec<&str> = PARTS.iter().map(|p| p.name).collect();
+        return Err(crate::LabError::Settings(format!(
+            "--only {unknown:?} is no experiment; the experiments are {}",
+            names.join(", ")
+        )));
+    }
     std::fs::create_dir_all(dir).map_err(crate::LabError::folder(dir))?;
     let started = Instant::now();
     let load_before = load_average();
@@ -413,6 +424,20 @@ pub fn default_dir() -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `--only` with a name that is no experiment is refused with the names there are,
+    /// before anything runs or any folder is made.
+    #[test]
+    fn only_an_experiment_that_is_not_one_is_refused() {
+        let dir = std::env::temp_dir().join(format!("magg-all-only-{}", std::process::id()));
+        let e = all(Path::new("/nonexistent"), &dir, &["bogus".into()]).unwrap_err();
+        assert!(
+            e.to_string().contains(r#"--only "bogus" is no experiment"#),
+            "{e}"
+        );
+        assert!(e.to_string().contains("links, overhead"), "{e}");
+        assert!(!dir.exists());
+    }
 
     #[test]
     fn civil_dates() {

@@ -139,7 +139,7 @@ pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), crate::La
     let (cell_w, cell_h) = (u64::from(c.size) + 8, u64::from(c.size) + label);
     let (w64, h64) = (u64::from(cols) * cell_w + 8, u64::from(rows) * cell_h + 8);
     if w64 > MAX_SHEET_SIDE || h64 > MAX_SHEET_SIDE {
-        return Err(crate::LabError::Draw(format!(
+        return Err(crate::LabError::Settings(format!(
             "a contact sheet of {w64}x{h64} pixels ({} pictures of {} pixels, {cols} columns): \
              at most {MAX_SHEET_SIDE} a side; use a smaller --size or other --columns",
             entries.len(),

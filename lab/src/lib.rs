@@ -62,6 +62,9 @@ pub enum LabError {
     },
     #[error("{0}: no .gltf or .glb files")]
     NoScenes(std::path::PathBuf),
+    /// Settings a measurement cannot be made with, and why.
+    #[error("{0}")]
+    Settings(String),
 }
 
 impl LabError {

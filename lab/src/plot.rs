@@ -73,10 +73,11 @@ pub fn log_log_png(
     log_log_marked_png(path, title, x_label, y_label, series, &[])
 }
 
-/// Whether `v` can be placed on a log axis whose ends lie a quarter beyond the values: above
-/// 0, and finite with that room (an axis ending at infinity drew without end).
+/// Whether `v` can be placed on a log axis whose ends lie a quarter beyond the values: from
+/// 1e-300 to 1e300, so that the ends are finite and not subnormal (an axis ending at infinity,
+/// or at 1e-311, was drawn without end).
 fn on_log_axis(v: f64) -> bool {
-    v > 0.0 && v <= f64::MAX / 2.0
+    (1e-300..=1e300).contains(&v)
 }
 
 /// [`log_log_png`] with a second kind of series drawn as marks only (measured points beside
@@ -205,8 +206,8 @@ pub fn transfers_png(
 mod tests {
     use super::*;
 
-    /// A point too large to give its axis a finite end (a peer's wall time of 1e308 s) is
-    /// left out; the plot of the others is drawn (it hung), and a plot of no plottable
+    /// A point too large or too small to give its axis a finite, normal end (a peer's wall
+    /// time of 1e308 s, a relMSE of 1e-320) is left out; the plot of the others is drawn (it hung), and a plot of no plottable
     /// point says so.
     #[test]
     fn points_no_log_axis_can_hold_are_left_out() {
@@ -215,7 +216,14 @@ mod tests {
         let path = dir.join("p.png");
         let series = vec![(
             "a".to_string(),
-            vec![(1.0, 0.5), (2.0, 0.25), (1e308, 0.1), (f64::INFINITY, 0.1)],
+            vec![
+                (1.0, 0.5),
+                (2.0, 0.25),
+                (1e308, 0.1),
+                (f64::INFINITY, 0.1),
+                (1.5, 1e-320),
+                (1e-311, 0.3),
+            ],
         )];
         log_log_png(&path, "t", "x", "y", &series).unwrap();
         assert!(path.exists());

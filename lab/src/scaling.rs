@@ -470,6 +470,14 @@ pub fn subscreens(
     config: &ScalingConfig,
     dir: &Path,
 ) -> Result<ScalingReport, crate::LabError> {
+    // The smallest subscreen count measured is 80, one a render node: an image must have that
+    // many pixels (the findings are read at that count).
+    if u64::from(config.width) * u64::from(config.height) < 80 {
+        return Err(crate::LabError::Settings(format!(
+            "an image of {}x{} has fewer pixels than the 80 subscreens measured first",
+            config.width, config.height
+        )));
+    }
     std::fs::create_dir_all(dir).map_err(crate::LabError::folder(dir))?;
     let recording = record(program, config, dir)?;
     let w = &recording.workload;

@@ -247,6 +247,8 @@ pub enum PfmError {
     Field(&'static str),
     #[error("image too large")]
     TooLarge,
+    #[error("an image of {width}x{height}: no pixels")]
+    NoPixels { width: u32, height: u32 },
     #[error("expected {0} bytes of pixels after the header")]
     TruncatedPixels(usize),
 }
@@ -285,6 +287,12 @@ pub fn decode_pfm(bytes: &[u8]) -> Result<Image, PfmError> {
     let w: u32 = tokens[1].parse().map_err(|_| PfmError::Field("width"))?;
     let h: u32 = tokens[2].parse().map_err(|_| PfmError::Field("height"))?;
     let scale: f32 = tokens[3].parse().map_err(|_| PfmError::Field("scale"))?;
+    if w == 0 || h == 0 {
+        return Err(PfmError::NoPixels {
+            width: w,
+            height: h,
+        });
+    }
     let little = scale < 0.0;
     let n = (w as usize)
         .checked_mul(h as usize)
@@ -371,6 +379,15 @@ mod tests {
             "{e}"
         );
         let _ = fs::remove_dir_all(&dir);
+    }
+
+    /// A PFM of no pixels is refused (compared, it gave a relMSE of 0).
+    #[test]
+    fn a_pfm_of_no_pixels_is_refused() {
+        for header in ["PF\n0 0\n-1.0\n", "PF\n0 5\n-1.0\n", "Pf\n3 0\n1.0\n"] {
+            let e = decode_pfm(header.as_bytes()).unwrap_err();
+            assert!(matches!(e, PfmError::NoPixels { .. }), "{header:?}: {e}");
+        }
     }
 
     #[test]

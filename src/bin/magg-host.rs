@@ -167,7 +167,7 @@ struct BalanceArgs {
     #[command(flatten)]
     run: RunArgs,
     /// Subscreens of the dynamic and adaptive runs.
-    #[arg(long, default_value_t = 640)]
+    #[arg(long, default_value_t = 640, value_parser = subscreen_count)]
     subscreens: u32,
     /// The full size (when no render flags are given): 480x270 at 16 spp and 2000
     /// subscreens (about 30 s on 2 cores; the default takes about 15 s).
@@ -278,17 +278,17 @@ fn write_secret_file(path: &std::path::Path, secret: &protocol::Secret) -> Resul
 struct LinksArgs {
     #[command(flatten)]
     cluster: ClusterArgs,
-    /// Data sizes in bytes, comma-separated.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![640u32, 2560, 10240, 40960])]
+    /// Data sizes in bytes, comma-separated (each at most what a frame carries, 64 MiB).
+    #[arg(long, value_delimiter = ',', default_values_t = vec![640u32, 2560, 10240, 40960], value_parser = transfer_size)]
     sizes: Vec<u32>,
-    /// Transfers per node per size.
-    #[arg(long, default_value_t = 5)]
+    /// Transfers per node per size (1 to 10,000).
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=10_000))]
     count: u32,
-    /// Packets per distance for the one-packet formula.
-    #[arg(long, default_value_t = 30)]
+    /// Packets per distance for the one-packet formula (1 to 10,000).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=10_000))]
     probes: u32,
-    /// Multiplies every modelled delay.
-    #[arg(long, default_value_t = 1.0)]
+    /// Multiplies every modelled delay (above 0, at most a million).
+    #[arg(long, default_value_t = 1.0, value_parser = time_scale)]
     time_scale: f64,
     /// Folder for the CSV files and the plot.
     #[arg(long, default_value = "out/links")]
@@ -323,6 +323,43 @@ fn chunk_size(s: &str) -> Result<usize, String> {
     magg::number_in(s, "triangles", 1, u32::MAX as usize, "")
 }
 
+/// A number of subscreens, 1 to a million (the paper's experiments go to 10,000; a count in
+/// the billions took the memory of a rectangle each).
+fn subscreen_count(s: &str) -> Result<u32, String> {
+    magg::number_in(s, "subscreens", 1, 1_000_000, "")
+}
+
+/// A data size for `experiment links`: 1 byte to what one frame carries.
+fn transfer_size(s: &str) -> Result<u32, String> {
+    magg::number_in(s, "bytes", 1, protocol::MAX_DATA, "")
+}
+
+/// A multiplier of the modelled delays, above 0 and at most a million (beyond, the delays
+/// overflow the clock and vanish).
+fn time_scale(s: &str) -> Result<f64, String> {
+    let v = magg::number_in(
+        s,
+        "as a time scale",
+        0.0,
+        fabric::model::MOST_TIME_SCALE,
+        "",
+    )?;
+    if v == 0.0 {
+        return Err("a time scale of 0: give a number above 0".into());
+    }
+    Ok(v)
+}
+
+/// A side of an image a benchmark renders, 1 to 32768 pixels (a render's limit).
+fn image_side(s: &str) -> Result<u32, String> {
+    magg::number_in(s, "pixels", 1, 32768, "")
+}
+
+/// How often a benchmark measures, 1 to 10,000 (its times are kept for the median).
+fn repeats(s: &str) -> Result<usize, String> {
+    magg::number_in(s, "repeats", 1, 10_000, "")
+}
+
 /// A benchmark's size at most: far larger ones take more memory than a machine has, and
 /// aborted on allocation.
 const MOST_BENCH_ITEMS: usize = 100_000_000;
@@ -351,11 +388,11 @@ struct WhittedArgs {
     /// is `../shared/scenes/khronos`.
     #[arg(default_value = "tests/data/scenes/khronos")]
     scenes: PathBuf,
-    #[arg(long, default_value_t = 320)]
+    #[arg(long, default_value_t = 320, value_parser = image_side)]
     width: u32,
-    #[arg(long, default_value_t = 240)]
+    #[arg(long, default_value_t = 240, value_parser = image_side)]
     height: u32,
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     spp: u32,
     #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
@@ -373,8 +410,8 @@ struct RaysArgs {
     /// Write each ray's hit distance here (little-endian f32, +inf on a miss).
     #[arg(long)]
     hits: Option<PathBuf>,
-    /// Measurements of each kind (the best and the median are printed).
-    #[arg(long, default_value_t = 5)]
+    /// Measurements of each kind (the best and the median are printed), 1 to 10,000.
+    #[arg(long, default_value_t = 5, value_parser = repeats)]
     repeat: usize,
     /// Any hit instead of the closest (shadow rays: stop at the first opaque surface).
     #[arg(long)]
@@ -452,8 +489,9 @@ struct RenderArgs {
     /// machines). The delay model's timing is the same either way.
     #[arg(long, default_value = "auto", value_parser = parse_dma_transport)]
     dma_transport: protocol::DmaTransport,
-    /// Number of subscreens the image is cut into (default: 8 per render node).
-    #[arg(long)]
+    /// Number of subscreens the image is cut into (default: 8 per render node; at most a
+    /// million).
+    #[arg(long, value_parser = subscreen_count)]
     subscreens: Option<u32>,
     /// Adaptive redivision: idle nodes get the unbegun half of a busy node's subscreen.
     #[arg(long)]
@@ -638,8 +676,9 @@ struct SimulateArgs {
     /// How demand fetches travel: dma or serial.
     #[arg(long, value_parser = parse_transfer)]
     demand_via: Option<protocol::Transfer>,
-    /// About this many subscreens, cut as the host cuts them (costs carried over by area).
-    #[arg(long, conflicts_with = "static_division")]
+    /// About this many subscreens, cut as the host cuts them (costs carried over by area; at
+    /// most a million).
+    #[arg(long, conflicts_with = "static_division", value_parser = subscreen_count)]
     subscreens: Option<u32>,
     /// One subscreen per render node.
     #[arg(long = "static")]
@@ -887,9 +926,10 @@ fn render(args: RenderArgs) -> Result<()> {
                 args.cache
             );
         }
-        if !(args.time_scale.is_finite() && args.time_scale > 0.0) {
+        if !(args.time_scale > 0.0 && args.time_scale <= fabric::model::MOST_TIME_SCALE) {
             anyhow::bail!(
-                "--time-scale must be a positive number, not {}",
+                "--time-scale must be a number above 0 and at most {}, not {:?}",
+                fabric::model::MOST_TIME_SCALE,
                 args.time_scale
             );
         }
