@@ -160,23 +160,19 @@ pub(crate) fn prepare_scene(a: SceneAssembly) -> Result<(SceneHeader, MemoryData
         chunk_triangles: (of.chunk_triangles as usize).max(1),
     };
     let (header, data) = renderer::prepare(desc, &opts);
-    chunks_fit_frames(&header, opts.chunk_triangles, protocol::MAX_DATA)?;
+    chunks_fit_frames(&header, protocol::MAX_DATA)?;
     Ok((header, data))
 }
 
 /// Every chunk may have to cross a socket in one frame of at most `limit` bytes of data (to a
 /// card or a render node on another machine, or by serial link): a scene with one that
 /// cannot is refused before any chunk is placed, instead of ending the connection that would
-/// carry it, with a chunk size that fits (the scene was cut at `chunk_triangles`).
-fn chunks_fit_frames(
-    header: &SceneHeader,
-    chunk_triangles: usize,
-    limit: u32,
-) -> Result<(), PrepareError> {
+/// carry it, with a chunk size that fits (from the largest chunk's bytes a triangle).
+fn chunks_fit_frames(header: &SceneHeader, limit: u32) -> Result<(), PrepareError> {
     let largest = (header.chunks.iter().enumerate()).max_by_key(|(_, c)| c.byte_len);
     match largest {
         Some((chunk, c)) if c.byte_len > limit => {
-            let fits = chunk_triangles as u64 * u64::from(limit) / u64::from(c.byte_len);
+            let fits = u64::from(c.tri_count) * u64::from(limit) / u64::from(c.byte_len);
             Err(PrepareError::ChunkTooLarge {
                 chunk,
                 bytes: u64::from(c.byte_len),
@@ -463,11 +459,12 @@ mod tests {
                 chunk_triangles: 64,
             },
         );
-        assert!(chunks_fit_frames(&scene, 64, protocol::MAX_DATA).is_ok());
-        let largest = scene.chunks.iter().map(|c| c.byte_len).max().unwrap();
-        let e = chunks_fit_frames(&scene, 64, largest - 4).unwrap_err();
-        let fits = 64 * u64::from(largest - 4) / u64::from(largest);
-        assert!(fits < 64);
+        assert!(chunks_fit_frames(&scene, protocol::MAX_DATA).is_ok());
+        let largest = (scene.chunks.iter()).max_by_key(|c| c.byte_len).unwrap();
+        let limit = largest.byte_len - 4;
+        let e = chunks_fit_frames(&scene, limit).unwrap_err();
+        let fits = u64::from(largest.tri_count) * u64::from(limit) / u64::from(largest.byte_len);
+        assert!(fits < u64::from(largest.tri_count));
         assert!(
             e.to_string()
                 .contains(&format!("render with --chunk-triangles {fits} or fewer")),
