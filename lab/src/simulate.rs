@@ -73,6 +73,8 @@ pub enum SimulateError {
         "the stats file's {name} {value:?} is not one the simulator knows; give it with --{name}"
     )]
     Unknown { name: &'static str, value: String },
+    #[error("a cache of {0}%: give a percentage above 0 and at most 100")]
+    Cache(f64),
     #[error(
         "a subscreen record names node {node}, which is not a render node of topology {topology}"
     )]
@@ -169,6 +171,10 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
                 .cache_percent
                 .or(recorded.cache_percent)
                 .ok_or(SimulateError::Missing("cache"))?;
+            // As render takes it: a percentage above 0 and at most 100.
+            if !(percent > 0.0 && percent <= 100.0) {
+                return Err(SimulateError::Cache(percent));
+            }
             (
                 Transfer::demand_percent(&workload, percent, via),
                 format!("demand by {via:?}, cache {percent}%").to_lowercase(),
@@ -529,5 +535,20 @@ mod tests {
         assert!(e.to_string().contains("\"Carrier\""), "{e}");
         let e = predict("{}", &Overrides::default()).unwrap_err();
         assert!(e.to_string().contains("no per-subscreen records"), "{e}");
+        // A cache that is no percentage, given or recorded (NaN passed as 0 bytes).
+        for cache in [f64::NAN, -5.0, 0.0, 250.0] {
+            let given = Overrides {
+                cache_percent: Some(cache),
+                ..Overrides::default()
+            };
+            let e = predict(&stats(), &given).unwrap_err();
+            assert!(
+                e.to_string().contains(&format!("a cache of {cache}%")),
+                "{e}"
+            );
+        }
+        let recorded = stats().replace(r#""cache_percent": 50.0"#, r#""cache_percent": -1.0"#);
+        let e = predict(&recorded, &Overrides::default()).unwrap_err();
+        assert!(e.to_string().contains("a cache of -1%"), "{e}");
     }
 }

@@ -147,8 +147,8 @@ struct ErrorArgs {
     width: u32,
     #[arg(long, default_value_t = 256)]
     height: u32,
-    /// Largest sample count of the sweep (doubling from 1).
-    #[arg(long, default_value_t = 256)]
+    /// Largest sample count of the sweep (doubling from 1; 1 to 2^30).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=1 << 30))]
     max_spp: u32,
     /// The full sweep, to 4096 spp (about 8 minutes on 2 cores).
     #[arg(long)]
