@@ -178,6 +178,12 @@ fn mistakes_are_one_clear_line() {
         &png,
         "is a folder",
     );
+    // A preset beside a size it would silently override.
+    expect_error(
+        &["render", "--preset", "vga", "--width", "100"],
+        &png,
+        "cannot be used with",
+    );
     expect_error(&["render", "--cache", "0"], &png, "--cache");
     expect_error(&["render", "--cache", "500"], &png, "--cache");
     expect_error(&["render", "--time-scale", "-1"], &png, "--time-scale");

@@ -537,8 +537,9 @@ struct RenderArgs {
     /// Image height; by default from the camera's aspect ratio, else 480.
     #[arg(long)]
     height: Option<u32>,
-    /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga.
-    #[arg(long)]
+    /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga (not with
+    /// --width or --height, which it would override).
+    #[arg(long, conflicts_with_all = ["width", "height"])]
     preset: Option<String>,
     /// Samples per pixel [default: 64; 24 for the built-in demo scene when it is denoised].
     #[arg(long)]
