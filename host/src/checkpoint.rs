@@ -225,7 +225,8 @@ impl Checkpoint {
             });
         }
         let (w, h) = (header.width as usize, header.height as usize);
-        if w == 0 || h == 0 || w > 32768 || h > 32768 {
+        let most = renderer::MAX_IMAGE_SIDE as usize;
+        if w == 0 || h == 0 || w > most || h > most {
             return Err(damaged("image size out of range"));
         }
         let rest = &body[12 + len..];

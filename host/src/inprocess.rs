@@ -78,10 +78,12 @@ pub fn check_settings(config: &RenderConfig) -> Result<(), RenderError> {
             s.width, s.height
         ));
     }
-    if s.width > 32768 || s.height > 32768 {
+    if s.width > renderer::MAX_IMAGE_SIDE || s.height > renderer::MAX_IMAGE_SIDE {
         return bad(format!(
-            "image size {}x{} is too large (at most 32768 a side)",
-            s.width, s.height
+            "image size {}x{} is too large (at most {} a side)",
+            s.width,
+            s.height,
+            renderer::MAX_IMAGE_SIDE
         ));
     }
     if s.spp == 0 {
@@ -280,7 +282,8 @@ pub(crate) fn camera_and_settings(
     if !config.height_given
         && let Some(a) = camera.aspect_ratio
     {
-        settings.height = ((settings.width as f32 / a).round() as u32).clamp(1, 32768);
+        settings.height =
+            ((settings.width as f32 / a).round() as u32).clamp(1, renderer::MAX_IMAGE_SIDE);
     }
     Ok((settings, camera))
 }

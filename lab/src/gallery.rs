@@ -125,8 +125,8 @@ pub fn render_entry(path: &Path, c: &GalleryConfig) -> Entry {
     }
 }
 
-/// A contact sheet's longest side: 32768 pixels, as for a render.
-const MAX_SHEET_SIDE: u64 = 32768;
+/// A contact sheet's longest side, as a render's.
+const MAX_SHEET_SIDE: u64 = renderer::MAX_IMAGE_SIDE as u64;
 
 /// Lays the entries out on a sheet and writes it as PNG.
 pub fn write_sheet(entries: &[Entry], c: &GalleryConfig) -> Result<(), crate::LabError> {

@@ -207,8 +207,8 @@ mod tests {
     use super::*;
 
     /// A point too large or too small to give its axis a finite, normal end (a peer's wall
-    /// time of 1e308 s, a relMSE of 1e-320) is left out; the plot of the others is drawn (it hung), and a plot of no plottable
-    /// point says so.
+    /// time of 1e308 s, a relMSE of 1e-320) is left out; the plot of the others is drawn (it
+    /// hung), and a plot of no plottable point says so.
     #[test]
     fn points_no_log_axis_can_hold_are_left_out() {
         let dir = std::env::temp_dir().join(format!("magg-plot-{}", std::process::id()));

@@ -43,8 +43,9 @@ impl RenderRecords {
         if records.subscreens.is_empty() {
             return Err(bad("it holds no subscreen records".into()));
         }
-        // As a render's image is: one pixel to 32768 a side.
-        if !(1..=32768).contains(&records.width) || !(1..=32768).contains(&records.height) {
+        // As a render's image is: one pixel to MAX_IMAGE_SIDE a side.
+        let sides = 1..=renderer::MAX_IMAGE_SIDE;
+        if !sides.contains(&records.width) || !sides.contains(&records.height) {
             return Err(bad(format!(
                 "its image is {}x{}: no render has that size",
                 records.width, records.height

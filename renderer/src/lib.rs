@@ -32,7 +32,7 @@ pub mod triangle;
 
 pub use camera::{Camera, Projection};
 pub use integrator::IntegratorKind;
-pub use render::{Image, Rect, RenderSettings};
+pub use render::{Image, MAX_IMAGE_SIDE, Rect, RenderSettings};
 pub use scene::{
     MakeBlock, PrepareOptions, SceneDesc, SceneHeader, prepare, prepare_flat, prepare_with,
 };

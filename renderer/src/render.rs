@@ -74,6 +74,10 @@ impl Rect {
     }
 }
 
+/// The longest side of an image magg renders: what the host accepts, and what everything
+/// that reads a render's image or figures back (images, checkpoints, stats files) allows.
+pub const MAX_IMAGE_SIDE: u32 = 32768;
+
 /// A linear RGB image, row-major, top row first.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {

@@ -163,9 +163,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     Ok(())
 }
 
-/// The longest side of an EXR image read: a render's longest (32768).
-const MAX_READ_SIDE: usize = 32768;
-
 /// Reads an image written by magg or another renderer (PNG is sRGB-decoded to linear).
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     let format = Format::of(path).ok_or_else(|| ImageError::UnknownFormat { path: path.into() })?;
@@ -202,6 +199,7 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
             use exr::prelude::*;
             // The reader allocates the pixels for the size the header declares before it
             // reads any: a header is checked first, as a render's size is.
+            const MAX_READ_SIDE: usize = renderer::MAX_IMAGE_SIDE as usize;
             let meta = exr::meta::MetaData::read_from_file(path, false)
                 .map_err(|e| decode(e.to_string()))?;
             if let Some(size) = (meta.headers.iter().map(|h| h.layer_size))

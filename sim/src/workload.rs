@@ -142,7 +142,7 @@ pub enum WorkloadError {
 /// One subscreen as a render's stats record it (the fields the simulator reads; the others
 /// are there to compare with).
 /// The longest side of an image magg renders (the host refuses larger ones).
-const MAX_SIDE: u32 = 32768;
+const MAX_SIDE: u32 = renderer::MAX_IMAGE_SIDE;
 
 #[derive(Clone, Debug, Deserialize)]
 struct Record {

@@ -350,9 +350,9 @@ fn time_scale(s: &str) -> Result<f64, String> {
     Ok(v)
 }
 
-/// A side of an image a benchmark renders, 1 to 32768 pixels (a render's limit).
+/// A side of an image a benchmark renders, 1 to a render's limit.
 fn image_side(s: &str) -> Result<u32, String> {
-    magg::number_in(s, "pixels", 1, 32768, "")
+    magg::number_in(s, "pixels", 1, renderer::MAX_IMAGE_SIDE, "")
 }
 
 /// How often a benchmark measures, 1 to 10,000 (its times are kept for the median).
