@@ -292,6 +292,27 @@ fn mistakes_are_one_clear_line() {
     );
 }
 
+/// An address the host cannot listen at is refused before anything is written: no secret
+/// file is left behind for the nodes of a cluster that never started.
+#[test]
+fn a_listen_address_that_is_not_one_writes_no_secret() {
+    let dir = scratch("listen-address");
+    for addr in ["nonsense", "127.0.0.1:99999"] {
+        let what = ["render", "--listen", addr];
+        let o = run(host()
+            .current_dir(&dir)
+            .env_remove("MAGG_SECRET")
+            .args(what)
+            .arg("-o")
+            .arg(dir.join("x.png")));
+        one_clear_line(&o, &what, &format!("cannot listen at {addr}"));
+        assert!(
+            !dir.join("magg-secret").exists(),
+            "{what:?} wrote a secret for a cluster that could not start"
+        );
+    }
+}
+
 /// A log filter that does not parse is said once, and the command goes on at `info` (it
 /// fell back silently).
 #[test]

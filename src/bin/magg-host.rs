@@ -232,6 +232,11 @@ impl ClusterArgs {
             None => (host::cluster::ClusterMode::Spawn, self.spawn.clone()),
         };
         let topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
+        if let Some(addr) = &self.listen {
+            // Before a secret is written for nodes to read: not for a cluster that cannot be.
+            std::net::ToSocketAddrs::to_socket_addrs(addr.as_str())
+                .with_context(|| format!("cannot listen at {addr}"))?;
+        }
         let secret = match self.secret.resolve()? {
             Some(s) => s,
             None => {
