@@ -541,6 +541,40 @@ fn simulate_predicts_a_recorded_render_and_another_machine() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
 }
 
+/// A render on a topology file's machine, whose name is no preset, keeps the topology whole
+/// in its stats, and `simulate` replays the render on it without being told the machine
+/// (it could not find a machine called `pair` before).
+#[test]
+fn simulate_replays_a_render_on_a_topology_file() {
+    let dir = scratch("simulate-file");
+    let topology = dir.join("pair.toml");
+    std::fs::write(
+        &topology,
+        "name = \"pair\"\n[grid]\ncards = 1\nrows = 1\ncols = 2\n",
+    )
+    .unwrap();
+    let stats = dir.join("stats.json");
+    let o = run(host()
+        .arg("render")
+        .arg(data().join("scenes/cornell/cornell.gltf"))
+        .args(["--width", "16", "--height", "8", "--spp", "1", "--spawn"])
+        .arg(&topology)
+        .arg("--stats")
+        .arg(&stats)
+        .arg("-o")
+        .arg(dir.join("pair.png")));
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Gone, as a file may be by the time its render is simulated.
+    std::fs::remove_file(&topology).unwrap();
+    let o = run(host().arg("simulate").arg(&stats));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("2 render nodes") && out.contains("measured"),
+        "{out}"
+    );
+}
+
 /// `experiment speedup` at a tiny size: a recording, measured points on real processes (1, 2
 /// and 8 render nodes) each beside its prediction, simulated curves to 1000 render nodes,
 /// and every finding of the paper checked in the report.

@@ -251,6 +251,13 @@ impl Topology {
         Ok(t)
     }
 
+    /// Whether the preset of this topology's name ([`Topology::preset`]) is this very
+    /// machine (the same nodes and links), so that its name is enough to make it again. A
+    /// topology file's is not: its name is its own (or `custom`).
+    pub fn is_preset(&self) -> bool {
+        Topology::preset(&self.name).is_ok_and(|p| p.nodes == self.nodes && p.links == self.links)
+    }
+
     /// The topology as a TOML file (explicit nodes and links).
     pub fn to_toml(&self) -> String {
         toml::to_string(&self.to_file()).expect("a topology always serialises")
@@ -583,6 +590,18 @@ mod tests {
         assert!(e.contains("unknown topology preset"), "{e}");
         let e = Topology::resolve("no-such").unwrap_err().to_string();
         assert!(e.contains("unknown topology preset"), "{e}");
+    }
+
+    #[test]
+    fn a_preset_is_known_by_its_machine_not_only_its_name() {
+        for name in ["magg", "tiny", "grid:2x1x3"] {
+            assert!(Topology::resolve(name).unwrap().is_preset(), "{name}");
+        }
+        let renamed =
+            Topology::from_toml("name = \"tiny\"\n[grid]\ncards = 1\nrows = 1\ncols = 3\n");
+        assert!(!renamed.unwrap().is_preset());
+        let own = Topology::from_toml("name = \"pair\"\n[grid]\ncards = 1\nrows = 1\ncols = 2\n");
+        assert!(!own.unwrap().is_preset());
     }
 
     #[test]

@@ -123,6 +123,10 @@ pub struct ClusterStats {
     #[serde(flatten)]
     pub render: RenderStats,
     pub topology: String,
+    /// The topology itself, as a topology file, where its name is not a preset's (a file's
+    /// topology): what `simulate` replays the render on.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub topology_file: Option<String>,
     pub processes: usize,
     pub transfer: String,
     /// The DMA transport asked for (`auto` or `tcp`).
@@ -1461,6 +1465,7 @@ fn cluster_stats(
     ClusterStats {
         render,
         topology: topo.name.clone(),
+        topology_file: (!topo.is_preset()).then(|| topo.to_toml()),
         processes: topo.len(),
         transfer: format!("{:?}", config.transfer),
         dma_transport: config.dma_transport.as_str().into(),

@@ -38,6 +38,8 @@ pub struct Overrides {
 #[derive(Deserialize, Default)]
 struct Recorded {
     topology: Option<String>,
+    /// A topology that is no preset, whole (a topology file's).
+    topology_file: Option<String>,
     link_model: Option<String>,
     time_scale: Option<f64>,
     transfer: Option<String>,
@@ -106,16 +108,27 @@ pub struct Prediction {
     pub result: SimResult,
 }
 
+/// The machine to simulate: `asked` (a preset or a topology file) if given, else the
+/// recorded render's (a preset by name, or the whole topology a file gave).
+fn topology_of(recorded: &Recorded, asked: Option<&str>) -> Result<Topology, SimulateError> {
+    Ok(match (asked, &recorded.topology_file) {
+        (Some(spec), _) => Topology::resolve(spec)?,
+        (None, Some(file)) => Topology::from_toml(file)?,
+        (None, None) => Topology::resolve(
+            recorded
+                .topology
+                .as_deref()
+                .ok_or(SimulateError::Missing("topology"))?,
+        )?,
+    })
+}
+
 /// Simulates the render a stats file describes, with `overrides` applied.
 pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, SimulateError> {
     let workload = Workload::from_stats_json(stats_json)?;
     let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
-    let topology_name = overrides
-        .topology
-        .clone()
-        .or(recorded.topology.clone())
-        .ok_or(SimulateError::Missing("topology"))?;
-    let topology = Topology::resolve(&topology_name)?;
+    let topology = topology_of(&recorded, overrides.topology.as_deref())?;
+    let topology_name = topology.name.clone();
     let link = match (overrides.link, recorded.link_model.as_deref()) {
         (Some(l), _) => l,
         (None, Some(name)) => name
@@ -291,7 +304,8 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
         .subscreens;
     // Each record's node is looked up in the topology below: one that names no render node
     // of it (a file edited, or of another render) is refused, not indexed.
-    let topology = Topology::resolve(&bare.topology_name)?;
+    let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
+    let topology = topology_of(&recorded, None)?;
     if let Some(r) = records.iter().find(|r| {
         (r.node as usize) >= topology.len() || topology.role(r.node) != protocol::Role::Render
     }) {
