@@ -252,10 +252,18 @@ impl Topology {
     }
 
     /// Whether the preset of this topology's name ([`Topology::preset`]) is this very
-    /// machine (the same nodes and links), so that its name is enough to make it again. A
-    /// topology file's is not: its name is its own (or `custom`).
+    /// machine (the same nodes, links and model, but for the link model and time scale, which
+    /// a render may set and its stats record), so that its name is enough to make it again.
+    /// A topology file's is not: its name is its own (or `custom`).
     pub fn is_preset(&self) -> bool {
-        Topology::preset(&self.name).is_ok_and(|p| p.nodes == self.nodes && p.links == self.links)
+        Topology::preset(&self.name).is_ok_and(|p| {
+            let model = crate::model::ModelParams {
+                link: p.model.link,
+                time_scale: p.model.time_scale,
+                ..self.model.clone()
+            };
+            p.nodes == self.nodes && p.links == self.links && p.model == model
+        })
     }
 
     /// The topology as a TOML file (explicit nodes and links).
@@ -602,6 +610,16 @@ mod tests {
         assert!(!renamed.unwrap().is_preset());
         let own = Topology::from_toml("name = \"pair\"\n[grid]\ncards = 1\nrows = 1\ncols = 2\n");
         assert!(!own.unwrap().is_preset());
+        // The same grid and name with a model of its own is not the preset either; another
+        // link model or time scale (a render's flags) leaves it the preset.
+        let tiny = "name = \"tiny\"\n[grid]\ncards = 1\nrows = 2\ncols = 2\n";
+        assert!(Topology::from_toml(tiny).unwrap().is_preset());
+        let buses = Topology::from_toml(&format!("{tiny}[model]\ngbus_count = 3\n"));
+        assert!(!buses.unwrap().is_preset());
+        let mut scaled = Topology::preset("magg").unwrap();
+        scaled.model.time_scale = 0.5;
+        scaled.model.link = crate::model::LinkModelKind::Paper;
+        assert!(scaled.is_preset());
     }
 
     #[test]
