@@ -38,7 +38,12 @@ pub fn topology(data: &[u8]) {
     if let Ok(text) = std::str::from_utf8(data)
         && let Ok(t) = fabric::Topology::from_toml(text)
     {
-        let _ = fabric::routing::Routes::all_alive(&t);
+        // Routes are made when first asked for: ask for every destination's.
+        let routes = fabric::routing::Routes::all_alive(&t);
+        for dest in 0..t.len() as protocol::NodeId {
+            let _ = routes.next_hop(0, dest);
+            let _ = routes.broadcast_children(0, dest);
+        }
     }
 }
 

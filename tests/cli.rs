@@ -292,8 +292,10 @@ fn mistakes_are_one_clear_line() {
     );
 }
 
-/// An address the host cannot listen at is refused before anything is written: no secret
-/// file is left behind for the nodes of a cluster that never started.
+/// A listen address that is not one (it does not parse, or its port is out of range) is
+/// refused before anything is written: no secret file is left behind for the nodes of a
+/// cluster that never started. (One that parses but cannot be bound, a port in use, is
+/// found by the bind, after the file.)
 #[test]
 fn a_listen_address_that_is_not_one_writes_no_secret() {
     let dir = scratch("listen-address");

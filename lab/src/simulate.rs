@@ -90,7 +90,9 @@ pub enum SimulateError {
 #[derive(Clone, Debug, Serialize)]
 pub struct Prediction {
     pub topology: String,
-    /// The topology's name or preset, as `Topology::resolve` takes it.
+    /// The machine as it was named: what `--topology` gave (a preset or a topology file's
+    /// path), else the recorded render's topology name (a preset's, or a topology file's own
+    /// name, whose machine the stats keep whole).
     pub topology_name: String,
     pub link_model: LinkModelKind,
     pub time_scale: f64,
@@ -128,7 +130,10 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
     let workload = Workload::from_stats_json(stats_json)?;
     let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
     let topology = topology_of(&recorded, overrides.topology.as_deref())?;
-    let topology_name = topology.name.clone();
+    let topology_name = overrides
+        .topology
+        .clone()
+        .unwrap_or_else(|| topology.name.clone());
     let link = match (overrides.link, recorded.link_model.as_deref()) {
         (Some(l), _) => l,
         (None, Some(name)) => name
