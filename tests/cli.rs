@@ -292,14 +292,17 @@ fn mistakes_are_one_clear_line() {
     );
 }
 
-/// A listen address that is not one (it does not parse, or its port is out of range) is
-/// refused before anything is written: no secret file is left behind for the nodes of a
-/// cluster that never started. (One that parses but cannot be bound, a port in use, is
-/// found by the bind, after the file.)
+/// A listen address the host cannot listen at is refused before a secret is written: one
+/// that does not parse, a port out of range, a port another process holds. No secret file
+/// is left behind for the nodes of a cluster that never started, and one already there (a
+/// running host's, which its nodes read) is not replaced.
 #[test]
-fn a_listen_address_that_is_not_one_writes_no_secret() {
+fn a_listen_address_that_cannot_be_writes_no_secret() {
     let dir = scratch("listen-address");
-    for addr in ["nonsense", "127.0.0.1:99999"] {
+    let secret = dir.join("magg-secret");
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let taken = taken.local_addr().unwrap().to_string();
+    for addr in ["nonsense", "127.0.0.1:99999", taken.as_str()] {
         let what = ["render", "--listen", addr];
         let o = run(host()
             .current_dir(&dir)
@@ -309,10 +312,21 @@ fn a_listen_address_that_is_not_one_writes_no_secret() {
             .arg(dir.join("x.png")));
         one_clear_line(&o, &what, &format!("cannot listen at {addr}"));
         assert!(
-            !dir.join("magg-secret").exists(),
+            !secret.exists(),
             "{what:?} wrote a secret for a cluster that could not start"
         );
     }
+    std::fs::write(&secret, "the secret of a host already running").unwrap();
+    let o = run(host()
+        .current_dir(&dir)
+        .env_remove("MAGG_SECRET")
+        .args(["render", "--listen", &taken, "-o"])
+        .arg(dir.join("x.png")));
+    assert!(!o.status.success());
+    assert_eq!(
+        std::fs::read_to_string(&secret).unwrap(),
+        "the secret of a host already running"
+    );
 }
 
 /// A log filter that does not parse is said once, and the command goes on at `info` (it

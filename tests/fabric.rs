@@ -28,6 +28,7 @@ fn config(topology: &str, mode: ClusterMode) -> ClusterConfig {
         join_timeout: Duration::from_secs(120),
         node_log: "error".into(),
         node_program: env!("CARGO_BIN_EXE_magg-host").into(),
+        write_secret: None,
     }
 }
 

@@ -33,6 +33,10 @@ pub struct ClusterConfig {
     /// The executable spawned nodes run (in their role's subcommand): the host's own, so
     /// that every process of a local cluster is the same build.
     pub node_program: PathBuf,
+    /// Where to write the secret (a generated one) for nodes started by hand, readable only
+    /// by this user: once the host listens, so that a host that cannot (its port taken)
+    /// neither leaves a file nor replaces the one a running host's nodes read.
+    pub write_secret: Option<PathBuf>,
 }
 
 impl ClusterConfig {
@@ -58,6 +62,11 @@ pub enum StartError {
         addr: String,
         source: std::io::Error,
     },
+    #[error("cannot write the cluster secret to {path}: {source}")]
+    SecretFile {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{0}")]
     Spawn(std::io::Error),
     #[error("{0}")]
@@ -77,9 +86,32 @@ pub async fn bind(config: &ClusterConfig) -> Result<TcpListener, StartError> {
         ClusterMode::Spawn => "127.0.0.1:0".to_string(),
         ClusterMode::Listen(a) => a.clone(),
     };
-    TcpListener::bind(&addr)
+    let listener = TcpListener::bind(&addr)
         .await
-        .map_err(|source| StartError::Listen { addr, source })
+        .map_err(|source| StartError::Listen { addr, source })?;
+    if let Some(path) = &config.write_secret {
+        write_secret_file(path, &config.secret).map_err(|source| StartError::SecretFile {
+            path: path.clone(),
+            source,
+        })?;
+        tracing::info!(
+            "generated a cluster secret in {} (readable only by you): give nodes --secret-file {}",
+            path.display(),
+            path.display()
+        );
+    }
+    Ok(listener)
+}
+
+fn write_secret_file(path: &std::path::Path, secret: &Secret) -> std::io::Result<()> {
+    use std::{io::Write, os::unix::fs::OpenOptionsExt};
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(path)?
+        .write_all(secret.expose().as_bytes())
 }
 
 pub async fn start(
@@ -201,6 +233,7 @@ mod tests {
             join_timeout: Duration::from_secs(60),
             node_log: "error".into(),
             node_program: program.into(),
+            write_secret: None,
         }
     }
 

@@ -232,26 +232,15 @@ impl ClusterArgs {
             None => (host::cluster::ClusterMode::Spawn, self.spawn.clone()),
         };
         let topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
-        if let Some(addr) = &self.listen {
-            // Before a secret is written for nodes to read: not for a cluster that cannot be.
-            std::net::ToSocketAddrs::to_socket_addrs(addr.as_str())
-                .with_context(|| format!("cannot listen at {addr}"))?;
-        }
-        let secret = match self.secret.resolve()? {
-            Some(s) => s,
-            None => {
-                let s = protocol::Secret::generate();
-                if matches!(mode, host::cluster::ClusterMode::Listen(_)) {
-                    let path = std::path::PathBuf::from("magg-secret");
-                    write_secret_file(&path, &s)?;
-                    eprintln!(
-                        "generated a cluster secret in {} (readable only by you): give nodes --secret-file {}",
-                        path.display(),
-                        path.display()
-                    );
-                }
-                s
-            }
+        // A secret generated for nodes started by hand goes to a file they can read, once
+        // the host listens (`host::cluster::bind`).
+        let (secret, write_secret) = match self.secret.resolve()? {
+            Some(s) => (s, None),
+            None => (
+                protocol::Secret::generate(),
+                matches!(mode, host::cluster::ClusterMode::Listen(_))
+                    .then(|| std::path::PathBuf::from("magg-secret")),
+            ),
         };
         Ok(host::cluster::ClusterConfig {
             mode,
@@ -261,22 +250,9 @@ impl ClusterArgs {
             join_timeout: std::time::Duration::from_secs(self.join_timeout),
             node_log: self.node_log.clone(),
             node_program: own_program()?,
+            write_secret,
         })
     }
-}
-
-fn write_secret_file(path: &std::path::Path, secret: &protocol::Secret) -> Result<()> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .truncate(true)
-        .mode(0o600)
-        .open(path)
-        .with_context(|| format!("writing {}", path.display()))?;
-    f.write_all(secret.expose().as_bytes())?;
-    Ok(())
 }
 
 #[derive(Args)]
