@@ -302,27 +302,23 @@ fn a_listen_address_that_cannot_be_writes_no_secret() {
     let secret = dir.join("magg-secret");
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let taken = taken.local_addr().unwrap().to_string();
-    for addr in ["nonsense", "127.0.0.1:99999", taken.as_str()] {
-        let what = ["render", "--listen", addr];
-        let o = run(host()
+    let listen = |addr: &str| {
+        run(host()
             .current_dir(&dir)
             .env_remove("MAGG_SECRET")
-            .args(what)
-            .arg("-o")
-            .arg(dir.join("x.png")));
-        one_clear_line(&o, &what, &format!("cannot listen at {addr}"));
+            .args(["render", "--listen", addr, "-o"])
+            .arg(dir.join("x.png")))
+    };
+    for addr in ["nonsense", "127.0.0.1:99999", taken.as_str()] {
+        let what = ["render", "--listen", addr];
+        one_clear_line(&listen(addr), &what, &format!("cannot listen at {addr}"));
         assert!(
             !secret.exists(),
             "{what:?} wrote a secret for a cluster that could not start"
         );
     }
     std::fs::write(&secret, "the secret of a host already running").unwrap();
-    let o = run(host()
-        .current_dir(&dir)
-        .env_remove("MAGG_SECRET")
-        .args(["render", "--listen", &taken, "-o"])
-        .arg(dir.join("x.png")));
-    assert!(!o.status.success());
+    assert!(!listen(&taken).status.success());
     assert_eq!(
         std::fs::read_to_string(&secret).unwrap(),
         "the secret of a host already running"

@@ -126,6 +126,15 @@ impl Routes {
         }
     }
 
+    /// Routes over the same topology with another set of live nodes (after a loss).
+    pub fn with_alive(&self, alive: &[bool]) -> Routes {
+        Routes {
+            graph: self.graph.clone(),
+            alive: alive.to_vec(),
+            towards: (0..self.towards.len()).map(|_| OnceLock::new()).collect(),
+        }
+    }
+
     pub fn all_alive(t: &Topology) -> Routes {
         Routes::compute(t, &vec![true; t.len()])
     }

@@ -127,6 +127,14 @@ fn topology_of(recorded: &Recorded, asked: Option<&str>) -> Result<Topology, Sim
 
 /// Simulates the render a stats file describes, with `overrides` applied.
 pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, SimulateError> {
+    predict_on(stats_json, overrides).map(|(prediction, _)| prediction)
+}
+
+/// [`predict`], and the machine it simulated.
+fn predict_on(
+    stats_json: &str,
+    overrides: &Overrides,
+) -> Result<(Prediction, Topology), SimulateError> {
     let workload = Workload::from_stats_json(stats_json)?;
     let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
     let topology = topology_of(&recorded, overrides.topology.as_deref())?;
@@ -239,7 +247,7 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
         ));
     }
     let predicted_s = result.total_s;
-    Ok(Prediction {
+    let prediction = Prediction {
         topology: config.topology.summary(),
         topology_name,
         link_model: link,
@@ -255,7 +263,8 @@ pub fn predict(stats_json: &str, overrides: &Overrides) -> Result<Prediction, Si
             .map(|m| (predicted_s - m) / m * 100.0),
         notes,
         result,
-    })
+    };
+    Ok((prediction, config.topology))
 }
 
 /// The overheads read off a recorded render, with what they were read from.
@@ -303,14 +312,12 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
     struct Records {
         subscreens: Vec<Record>,
     }
-    let bare = predict(stats_json, &Overrides::default())?;
+    let (bare, topology) = predict_on(stats_json, &Overrides::default())?;
     let mut records = serde_json::from_str::<Records>(stats_json)
         .map_err(sim::WorkloadError::Json)?
         .subscreens;
     // Each record's node is looked up in the topology below: one that names no render node
     // of it (a file edited, or of another render) is refused, not indexed.
-    let recorded: Recorded = serde_json::from_str(stats_json).unwrap_or_default();
-    let topology = topology_of(&recorded, None)?;
     if let Some(r) = records.iter().find(|r| {
         (r.node as usize) >= topology.len() || topology.role(r.node) != protocol::Role::Render
     }) {

@@ -21,6 +21,7 @@
 use std::collections::BTreeSet;
 
 use protocol::Rect;
+use renderer::MAX_IMAGE_SIDE;
 use serde::{Deserialize, Serialize};
 
 /// Rows of one subscreen that need the same items: rendered in order, each row costing
@@ -135,15 +136,12 @@ pub enum WorkloadError {
     Subscreen { index: usize, reason: String },
     #[error("the image is {width}x{height}; it needs at least one pixel")]
     EmptyImage { width: u32, height: u32 },
-    #[error("the image is {width}x{height}; a render is at most {MAX_SIDE} pixels a side")]
+    #[error("the image is {width}x{height}; a render is at most {MAX_IMAGE_SIDE} pixels a side")]
     TooLarge { width: u32, height: u32 },
 }
 
 /// One subscreen as a render's stats record it (the fields the simulator reads; the others
 /// are there to compare with).
-/// The longest side of an image magg renders (the host refuses larger ones).
-const MAX_SIDE: u32 = renderer::MAX_IMAGE_SIDE;
-
 #[derive(Clone, Debug, Deserialize)]
 struct Record {
     x: u32,
@@ -262,7 +260,7 @@ impl Workload {
         }
         // What no render can have made: a stats file of a billion rows is not simulated
         // with a list per row.
-        if self.width > MAX_SIDE || self.height > MAX_SIDE {
+        if self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
             return Err(WorkloadError::TooLarge {
                 width: self.width,
                 height: self.height,

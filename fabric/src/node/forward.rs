@@ -10,7 +10,7 @@ use std::sync::atomic::Ordering;
 use protocol::{BROADCAST, Frame, FrameHeader, Message, NodeId, frame::Mode};
 
 use super::{Delivery, FLAG_REPLY, Fabric, SendError, Via, links::from_wire_times};
-use crate::{clock::now_ns, routing::Routes};
+use crate::clock::now_ns;
 
 /// What a node does with a frame that arrived on a mesh link.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -214,8 +214,8 @@ impl Fabric {
 
     /// Marks nodes dead or alive and recomputes routes around the dead ones.
     pub fn set_alive(&self, alive: &[bool]) {
-        let routes = Routes::compute(&self.inner.topology, alive);
-        *self.inner.routes.write().expect("routes lock") = routes;
+        let mut routes = self.inner.routes.write().expect("routes lock");
+        *routes = routes.with_alive(alive);
     }
 
     pub fn is_alive(&self, id: NodeId) -> bool {
@@ -246,7 +246,7 @@ impl Fabric {
             }
             let mut alive = routes.alive().to_vec();
             alive[node as usize] = false;
-            *routes = Routes::compute(&self.inner.topology, &alive);
+            *routes = routes.with_alive(&alive);
         }
         self.abandon_requests_to(node);
         self.resend_pending();
