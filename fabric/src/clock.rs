@@ -17,24 +17,28 @@ use tokio::sync::oneshot;
 
 /// CLOCK_MONOTONIC in nanoseconds.
 pub fn now_ns() -> u64 {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::Monotonic);
-    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+    let t = clock(libc::CLOCK_MONOTONIC);
+    t.as_secs() * 1_000_000_000 + u64::from(t.subsec_nanos())
 }
 
 /// CPU time this thread has spent, the cost of work measured apart from waits and from
 /// the other processes sharing the cores (which wall time cannot tell apart).
-///
-/// Read through the C library rather than rustix: rustix finds `clock_gettime` by parsing
-/// the vDSO, which crashes under valgrind (rustix issue 1559), and instruction counts under
-/// callgrind are how this project measures speed on a shared machine.
 pub fn thread_cpu_time() -> Duration {
+    clock(libc::CLOCK_THREAD_CPUTIME_ID)
+}
+
+/// A clock read through the C library rather than rustix: rustix finds `clock_gettime` by
+/// parsing the vDSO, which crashes under valgrind (rustix issue 1559), and instruction counts
+/// under callgrind are how this project measures speed on a shared machine; every node
+/// process reads the monotonic clock, so one rustix read kept them all from running there.
+fn clock(id: libc::clockid_t) -> Duration {
     let mut t = libc::timespec {
         tv_sec: 0,
         tv_nsec: 0,
     };
-    // SAFETY: `t` is a valid timespec to write to; the clock id is a constant the kernel
-    // knows (and if it did not, the call fails and leaves `t` at zero).
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    // SAFETY: `t` is a valid timespec to write to; the clock ids are constants the kernel
+    // knows (and if one were not, the call fails and leaves `t` at zero).
+    let rc = unsafe { libc::clock_gettime(id, &mut t) };
     if rc != 0 {
         return Duration::ZERO;
     }
