@@ -310,3 +310,60 @@ async fn hostile_bytes_on_every_port_leave_the_cluster_working() {
     drop(silent);
     let _ = Via::Control(0);
 }
+
+/// Fork and render nodes run under valgrind, as callgrind needs them to: `bench/
+/// cluster_counts.py` counts a cluster render's instructions that way, the one measure of
+/// its cost that the shared machine's noise leaves alone. Reading the monotonic clock
+/// through rustix crashed every node process there (rustix parses the vDSO itself, and
+/// valgrind does not give it one to parse); through the C library it works.
+#[test]
+fn nodes_run_under_valgrind() {
+    if Command::new("valgrind").arg("--version").output().is_err() {
+        eprintln!("SKIPPED: nodes_run_under_valgrind (valgrind is not installed)");
+        return;
+    }
+    const SECRET: &str = "valgrind test secret";
+    let dir = common::scratch("valgrind-nodes");
+    let out = dir.join("cluster.png");
+    let mut host = common::Logged::start(
+        common::host()
+            .args(["render", "--quiet"])
+            .arg(common::data().join("scenes/cornell/cornell.gltf"))
+            .args(["--width", "8", "--height", "8", "--spp", "1"])
+            .args(["--topology", "grid:1x1x1", "--listen", "127.0.0.1:0"])
+            .arg("-o")
+            .arg(&out)
+            .env("MAGG_LOG", "info")
+            .env("MAGG_SECRET", SECRET),
+    );
+    let line = host
+        .wait_for("to join at ", Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("the host did not listen: {}", host.log()));
+    let addr = line
+        .rsplit("to join at ")
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+    let nodes: Vec<common::Logged> = ["fork-node", "render-node"]
+        .into_iter()
+        .map(|role| {
+            common::Logged::start(
+                Command::new("valgrind")
+                    .args(["--tool=none", "-q", env!("CARGO_BIN_EXE_magg-host"), role])
+                    .args(["--join", &addr, "--listen", "127.0.0.1:0", "--log", "warn"])
+                    .env("MAGG_SECRET", SECRET),
+            )
+        })
+        .collect();
+    let code = host.wait_exit(Duration::from_secs(120));
+    let logs: Vec<String> = nodes.iter().map(common::Logged::log).collect();
+    assert_eq!(
+        code,
+        Some(Some(0)),
+        "the render with its nodes under valgrind did not finish: host {}\nnodes {logs:?}",
+        host.log()
+    );
+    assert!(out.exists(), "no image: {}", host.log());
+    let _ = std::fs::remove_dir_all(&dir);
+}
