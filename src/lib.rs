@@ -17,6 +17,62 @@ pub fn stamp_build_id() {
     protocol::stamp_build_id(BUILD_ID);
 }
 
+/// A line for the user on stderr that cannot end the process: `eprintln!` panics when stderr
+/// is gone (`magg-host render ... 2>&1 | head -1`, a full disk), which lost the render it
+/// reported on. What does not reach a closed stderr is dropped; the work goes on.
+#[macro_export]
+macro_rules! say {
+    ($($arg:tt)*) => {
+        $crate::write_stderr(::std::format_args!($($arg)*))
+    };
+}
+
+/// A line of results on stdout (tables, paths written), printed once the work it reports on
+/// is done and saved. A reader that stops early (`| head -1`, as scripts read the first
+/// line) ends the process quietly with success; another failure to write says so on stderr
+/// and exits with 1. `println!` would panic either way.
+#[macro_export]
+macro_rules! put {
+    ($($arg:tt)*) => {
+        $crate::write_stdout(::std::format_args!($($arg)*), true)
+    };
+}
+
+/// [`put!`] without the line end.
+#[macro_export]
+macro_rules! put_raw {
+    ($($arg:tt)*) => {
+        $crate::write_stdout(::std::format_args!($($arg)*), false)
+    };
+}
+
+#[doc(hidden)]
+pub fn write_stderr(args: std::fmt::Arguments) {
+    use std::io::Write;
+    let mut err = std::io::stderr().lock();
+    let _ = err.write_fmt(args).and_then(|()| err.write_all(b"\n"));
+}
+
+#[doc(hidden)]
+pub fn write_stdout(args: std::fmt::Arguments, line: bool) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let written = out
+        .write_fmt(args)
+        .and_then(|()| if line { out.write_all(b"\n") } else { Ok(()) })
+        .and_then(|()| out.flush());
+    match written {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(0),
+        Err(e) => {
+            write_stderr(format_args!(
+                "error: writing the results to standard output: {e}"
+            ));
+            std::process::exit(1);
+        }
+    }
+}
+
 /// Parses the command line; a mistake is one line on stderr and exit code 2 (help and
 /// version print as usual).
 pub fn parse_args<T: clap::Parser>() -> T {
@@ -53,7 +109,7 @@ fn parse_command_line<T: clap::FromArgMatches>(mut command: clap::Command) -> T 
                 .lines()
                 .find(|l| !l.trim().is_empty())
                 .unwrap_or("error: invalid command line");
-            eprintln!("{} (see --help)", first.trim_end());
+            say!("{} (see --help)", first.trim_end());
             std::process::exit(2);
         }
     }
@@ -117,6 +173,9 @@ pub fn init_logging(filter: &str) {
         .with_env_filter(parsed)
         .with_writer(std::io::stderr)
         .with_target(false)
+        // Its own report of a failed write goes through `eprint!`, which panics where
+        // stderr is gone: a log line that cannot be written is dropped instead.
+        .log_internal_errors(false)
         .try_init();
     // Said once logging is up, so that a mistyped --log or MAGG_LOG is not silently `info`.
     if let Some(e) = refused {
@@ -292,7 +351,7 @@ pub fn node_binary_main(role: protocol::Role, name: &'static str, about: &'stati
     let cli: NodeCli = parse_command_line(command);
     init_logging(&cli.log);
     if let Err(e) = node_main(role, &cli.node) {
-        eprintln!("error: {}", report(&e));
+        say!("error: {}", report(&e));
         std::process::exit(1);
     }
 }

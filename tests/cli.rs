@@ -709,3 +709,73 @@ fn compare_into_a_closed_pipe_is_no_error() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
 }
+
+/// `magg-host render ... 2>&1 | head -1`, or stderr on a full disk: the log and the last
+/// line cannot be written, and the image is written all the same (it panicked at the first
+/// log line, before the render, with nothing saved). Likewise results to a full stdout are
+/// one line on stderr and exit 1, not a panic.
+#[test]
+fn a_closed_or_full_stderr_loses_no_image() {
+    let dir = scratch("closed-stderr");
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
+    for (name, cluster) in [("in-process", false), ("cluster", true)] {
+        // Its reader gone before the first line: every write meets a broken pipe.
+        let out = dir.join(format!("{name}-pipe.png"));
+        let mut child = host()
+            .env("MAGG_LOG", "info")
+            .args(["render", "--width", "16", "--height", "16", "--spp", "1"])
+            .args(if cluster {
+                &["--spawn", "tiny"][..]
+            } else {
+                &["--in-process"][..]
+            })
+            .arg("-o")
+            .arg(&out)
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stderr.take());
+        let status = child.wait().unwrap();
+        assert!(status.success(), "{name}: {status}");
+        assert!(out.exists(), "{name}: no image behind a closed stderr");
+        let out = dir.join(format!("{name}-full.png"));
+        let status = host()
+            .env("MAGG_LOG", "info")
+            .args(["render", "--width", "16", "--height", "16", "--spp", "1"])
+            .args(if cluster {
+                &["--spawn", "tiny"][..]
+            } else {
+                &["--in-process"][..]
+            })
+            .arg("-o")
+            .arg(&out)
+            .stderr(full())
+            .status()
+            .unwrap();
+        assert!(status.success(), "{name}: {status}");
+        assert!(
+            out.exists(),
+            "{name}: no image with stderr on a full device"
+        );
+    }
+    let image = dir.join("in-process-full.png");
+    let o = host()
+        .arg("compare")
+        .arg(&image)
+        .arg(&image)
+        .stdout(full())
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("writing the results to standard output"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+}

@@ -573,7 +573,7 @@ struct RenderArgs {
 fn resume_hint(output: &std::path::Path) {
     let partial = host::checkpoint::path_for(output);
     if partial.exists() {
-        eprintln!(
+        magg::say!(
             "the finished scan lines are kept in {}; the same command with --resume continues the render",
             partial.display()
         );
@@ -595,9 +595,9 @@ fn scaling(
 ) -> Result<()> {
     let dir = a.out.clone().unwrap_or_else(|| lab::runs::out_dir(name));
     let r = run(&own_program()?, &scaling_config(a), &dir)?;
-    println!("{}", lab::scaling::findings_table(&r));
-    println!("{}", lab::scaling::measured_table(&r, x));
-    println!("wrote {}/report.md", dir.display());
+    magg::put!("{}", lab::scaling::findings_table(&r));
+    magg::put!("{}", lab::scaling::measured_table(&r, x));
+    magg::put!("wrote {}/report.md", dir.display());
     Ok(())
 }
 
@@ -700,7 +700,7 @@ fn simulate(a: SimulateArgs) -> Result<()> {
                     .with_context(|| format!("reading {}", path.display()))?;
                 let m = lab::simulate::measure_overheads(&from)
                     .with_context(|| format!("measuring overheads in {}", path.display()))?;
-                println!(
+                magg::put!(
                     "overheads from {}: {:.1} us a hop, {:.1} ms before the start, {:.1} us between the nodes' starts",
                     path.display(),
                     m.overheads.hop_ns as f64 / 1e3,
@@ -714,7 +714,7 @@ fn simulate(a: SimulateArgs) -> Result<()> {
     };
     let p = lab::simulate::predict(&text, &overrides)
         .with_context(|| format!("simulating {}", a.stats.display()))?;
-    print!("{}", lab::simulate::summary(&p));
+    magg::put_raw!("{}", lab::simulate::summary(&p));
     if let Some(path) = a.json {
         let json = serde_json::to_vec_pretty(&p).context("encoding the prediction")?;
         scene_io::image_io::write_atomic(&path, &json)
@@ -948,13 +948,13 @@ fn render(args: RenderArgs) -> Result<()> {
         });
         let stats = match rt.block_on(host::distributed::render_on_cluster(&cfg, &cancel)) {
             Err(host::distributed::ClusterRenderError::Interrupted) => {
-                eprintln!("interrupted; the cluster was stopped and no image was written");
+                magg::say!("interrupted; the cluster was stopped and no image was written");
                 resume_hint(&args.output);
                 std::process::exit(130);
             }
             Err(e) => {
                 let e = anyhow::Error::from(e);
-                eprintln!("error: {}", magg::report(&e));
+                magg::say!("error: {}", magg::report(&e));
                 resume_hint(&args.output);
                 std::process::exit(1);
             }
@@ -978,12 +978,12 @@ fn render(args: RenderArgs) -> Result<()> {
     });
     let stats = match host::inprocess::render_in_process_until(&config, &cancel) {
         Err(e @ host::RenderError::Interrupted { .. }) => {
-            eprintln!("{e}");
+            magg::say!("{e}");
             std::process::exit(130);
         }
         r => r?,
     };
-    eprintln!(
+    magg::say!(
         "wrote {} ({}x{}, {} spp) in {:.2} s: {:.2} M rays/s, {:.0} samples/s",
         stats.output,
         stats.width,
@@ -1005,13 +1005,16 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
         any_hit: a.any_hit,
         chunk_triangles: a.chunk_triangles,
     };
-    let r = lab::raybench::run(&cfg, &|m| eprintln!("{m}"))?;
+    let r = lab::raybench::run(&cfg, &|m| magg::say!("{m}"))?;
     let kind = if r.any_hit { "any hit" } else { "closest hit" };
-    println!(
+    magg::put!(
         "{} triangles, {} chunks: build best {:.3} s, median {:.3} s",
-        r.triangles, r.chunks, r.build_seconds, r.build_seconds_median
+        r.triangles,
+        r.chunks,
+        r.build_seconds,
+        r.build_seconds_median
     );
-    println!(
+    magg::put!(
         "{} rays ({kind}), {} hit ({:.2}%)",
         r.rays,
         r.hits,
@@ -1021,9 +1024,11 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
         ("in-process", &r.in_process),
         ("render node cache", &r.cache),
     ] {
-        println!(
+        magg::put!(
             "{name}: best {:.2} M rays/s, median {:.2} M rays/s (of {} repeats)",
-            rate.best_mrays, rate.median_mrays, rate.repeats
+            rate.best_mrays,
+            rate.median_mrays,
+            rate.repeats
         );
     }
     if let Some(p) = a.json {
@@ -1043,17 +1048,20 @@ fn bench_whitted(a: WhittedArgs) -> Result<()> {
             .threads
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
     };
-    let r = lab::whittedbench::run(&cfg, &|m| eprintln!("{m}"))?;
-    println!(
+    let r = lab::whittedbench::run(&cfg, &|m| magg::say!("{m}"))?;
+    magg::put!(
         "{}x{}, {} spp, {} threads",
-        cfg.width, cfg.height, cfg.spp, cfg.threads
+        cfg.width,
+        cfg.height,
+        cfg.spp,
+        cfg.threads
     );
-    println!(
+    magg::put!(
         "| scene | triangles | path (s) | whitted (s) | whitted/path | specular rays a camera ray | pruning relMSE |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|");
+    magg::put!("|---|---:|---:|---:|---:|---:|---:|");
     for row in &r.rows {
-        println!(
+        magg::put!(
             "| {} | {} | {:.2} | {:.2} | {:.2} | {:.1} | {} |",
             row.scene,
             row.triangles,
@@ -1067,9 +1075,12 @@ fn bench_whitted(a: WhittedArgs) -> Result<()> {
         );
     }
     if let Some(worst) = r.rows.iter().max_by(|a, b| a.ratio.total_cmp(&b.ratio)) {
-        println!(
+        magg::put!(
             "slowest against the path tracer: {} at {:.2}x ({:.2} s against {:.2} s)",
-            worst.scene, worst.ratio, worst.whitted_seconds, worst.path_seconds
+            worst.scene,
+            worst.ratio,
+            worst.whitted_seconds,
+            worst.path_seconds
         );
     }
     if let Some(worst) = r
@@ -1078,18 +1089,23 @@ fn bench_whitted(a: WhittedArgs) -> Result<()> {
         .filter_map(|row| row.pruning_rel_mse.map(|e| (row, e)))
         .max_by(|a, b| a.1.total_cmp(&b.1))
     {
-        println!(
+        magg::put!(
             "largest pruning error: {} at relMSE {:.2e}",
-            worst.0.scene, worst.1
+            worst.0.scene,
+            worst.1
         );
     }
     for (name, reason) in &r.refused {
-        println!("refused by the loader: {name}: {reason}");
+        magg::put!("refused by the loader: {name}: {reason}");
     }
     let h = &r.hostile;
-    println!(
+    magg::put!(
         "{} nested glass shells, {}x{}, 1 spp: {:.2} s, {:.1} specular rays a camera ray",
-        h.shells, h.width, h.height, h.seconds, h.specular_rays_per_camera_ray
+        h.shells,
+        h.width,
+        h.height,
+        h.seconds,
+        h.specular_rays_per_camera_ray
     );
     if let Some(p) = a.json {
         std::fs::write(&p, serde_json::to_vec_pretty(&r)?)
@@ -1117,38 +1133,41 @@ fn bench(args: BenchArgs) -> Result<()> {
         chunk_triangles: args.chunk_triangles,
     };
     let r = lab::bench::run(&config).map_err(anyhow::Error::msg)?;
-    println!(
+    magg::put!(
         "mesh: {} ({} triangles, {} chunks)",
-        r.mesh, r.triangles, r.chunks
+        r.mesh,
+        r.triangles,
+        r.chunks
     );
-    println!("| figure | value |");
-    println!("|---|---|");
-    println!(
+    magg::put!("| figure | value |");
+    magg::put!("|---|---|");
+    magg::put!(
         "| BVH build (chunks + both levels) | {:.2} s per million triangles |",
         r.build_seconds_per_million
     );
-    println!(
+    magg::put!(
         "| primary rays, 1 core | {:.2} M rays/s ({:.0}% hit) |",
         r.primary_rays_per_second / 1e6,
         r.primary_hit_fraction * 100.0
     );
-    println!(
+    magg::put!(
         "| incoherent rays, 1 core | {:.2} M rays/s ({:.0}% hit) |",
         r.incoherent_rays_per_second / 1e6,
         r.incoherent_hit_fraction * 100.0
     );
     match r.cornell_samples_per_second {
-        Some(s) => println!(
+        Some(s) => magg::put!(
             "| Cornell box path tracing, {} threads | {:.0} samples/s |",
-            r.cornell_threads, s
+            r.cornell_threads,
+            s
         ),
-        None => println!("| Cornell box path tracing | skipped: scene file not found |"),
+        None => magg::put!("| Cornell box path tracing | skipped: scene file not found |"),
     }
     if let (Some(t), Some(u)) = (
         r.textured_samples_per_second,
         r.untextured_samples_per_second,
     ) {
-        println!(
+        magg::put!(
             "| textured scene, {} threads: with textures / with constant factors | {:.0} / {:.0} samples/s ({:.2}x) |",
             r.cornell_threads,
             t,
@@ -1165,7 +1184,7 @@ fn bench(args: BenchArgs) -> Result<()> {
 
 fn print_cluster_summary(s: &host::distributed::ClusterStats) {
     let r = &s.render;
-    eprintln!(
+    magg::say!(
         "wrote {} ({}x{}, {} spp) on {} processes ({}) in {:.2} s (render {:.2} s): {:.0} samples/s",
         r.output,
         r.width,
@@ -1177,7 +1196,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         r.seconds.render,
         r.samples_per_second
     );
-    eprintln!(
+    magg::say!(
         "{} subscreens ({} split off), {} transfer, cache {}% ({} bytes a node), link model {} x{}",
         s.subscreen_count,
         s.subscreens_split,
@@ -1206,11 +1225,17 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         let mean = v.iter().sum::<f64>() / v.len() as f64;
         format!("{min:.1}/{mean:.1}/{max:.1}")
     };
-    eprintln!(
+    magg::say!(
         "{:<13} {:>5} {:>16} {:>16} {:>14} {:>14} {:>22}",
-        "", "nodes", "subscreens", "busy s", "waiting s", "idle s", "cache hit/miss/evict"
+        "",
+        "nodes",
+        "subscreens",
+        "busy s",
+        "waiting s",
+        "idle s",
+        "cache hit/miss/evict"
     );
-    eprintln!(
+    magg::say!(
         "{:<13} {:>5} {:>16} {:>16} {:>14} {:>14} {:>22}",
         "render nodes",
         render.len(),
@@ -1224,7 +1249,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         )
     );
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
-    eprintln!(
+    magg::say!(
         "{:<13} {:>5} served {:.1} MiB to render nodes, read {:.1} MiB over the G-bus; {} took their share as a segment the first fork node wrote",
         "fork nodes",
         forks.len(),
@@ -1235,7 +1260,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
             .filter(|n| n.share_items_in_segment > 0)
             .count()
     );
-    eprintln!(
+    magg::say!(
         "render nodes fetched {:.1} MiB (DMA {:.1}, of which {:.1} through shared memory; serial {:.1}); DMA transport {} ({} of {} render nodes on shared memory); {} frames forwarded; peak memory {:.1} MiB in all (per-node figures: --stats)",
         mib(s.totals.bytes_fetched_dma + s.totals.bytes_fetched_serial),
         mib(s.totals.bytes_fetched_dma),
@@ -1252,7 +1277,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         v.get(v.len() / 2).copied().unwrap_or(0)
     };
     let private: Vec<u64> = render.iter().map(|n| n.peak_private_bytes).collect();
-    eprintln!(
+    magg::say!(
         "render nodes' own memory (not shared segments) median {:.1} / max {:.1} MiB for a cache budget of {:.1} MiB; fork nodes' max {:.1} MiB; {} chunks walked in place in shared memory",
         mib(median(private.clone())),
         mib(private.iter().copied().max().unwrap_or(0)),
@@ -1265,7 +1290,7 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         render.iter().map(|n| n.chunks_in_place).sum::<u64>()
     );
     for l in &s.lost_nodes {
-        eprintln!(
+        magg::say!(
             "lost {} after {:.1} s: {}; {} subscreens handed on",
             l.who(),
             l.after_s,
@@ -1276,9 +1301,10 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
             let rows = l
                 .served_rows_after_s
                 .map_or("none before the end".into(), |s| format!("{s:.3} s"));
-            eprintln!(
+            magg::say!(
                 "  its share ({} chunks and tiles) rebuilt on the live fork nodes and rendering went on {:.3} s after the loss; first pixels of its render nodes through another fork node after {rows}",
-                l.items_moved, l.recovered_after_s
+                l.items_moved,
+                l.recovered_after_s
             );
         }
     }
@@ -1314,7 +1340,7 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 a.render
             };
             let r = lab::runs::overhead(&own_program()?, &render, &cluster, &dir)?;
-            println!("{}", lab::runs::overhead_table(&r));
+            magg::put!("{}", lab::runs::overhead_table(&r));
             std::fs::write(dir.join("overhead.json"), serde_json::to_vec_pretty(&r)?)?;
             Ok(())
         }
@@ -1348,8 +1374,8 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 &a.caches,
                 &dir,
             )?;
-            println!("{}", lab::runs::cache_table(&rows));
-            println!("wrote {}/cache.csv", dir.display());
+            magg::put!("{}", lab::runs::cache_table(&rows));
+            magg::put!("wrote {}/cache.csv", dir.display());
             Ok(())
         }
         ExperimentCmd::LoadBalance(a) => {
@@ -1376,8 +1402,8 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             };
             let r =
                 lab::balance::load_balance(&own_program()?, &render, &cluster, subscreens, &dir)?;
-            println!("{}", lab::balance::table(&r));
-            println!("wrote {}/report.md", dir.display());
+            magg::put!("{}", lab::balance::table(&r));
+            magg::put!("wrote {}/report.md", dir.display());
             Ok(())
         }
         ExperimentCmd::Convergence(a) => {
@@ -1392,8 +1418,8 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 peers: Some(a.peers),
             };
             let r = lab::convergence::error_sweep(&own_program()?, &config, &dir)?;
-            println!("{}", lab::convergence::table(&r));
-            println!("wrote {}/report.md", dir.display());
+            magg::put!("{}", lab::convergence::table(&r));
+            magg::put!("wrote {}/report.md", dir.display());
             Ok(())
         }
         ExperimentCmd::Subscreens(a) | ExperimentCmd::Speedup(a) if !a.scene.is_file() => {
@@ -1407,14 +1433,14 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             let dir = a.out.unwrap_or_else(lab::all::default_dir);
             let results = lab::all::all(&own_program()?, &dir, &a.only)?;
             for r in &results {
-                println!(
+                magg::put!(
                     "{:<14} {:>6.0} s  {}",
                     r.name,
                     r.seconds,
                     if r.ok { "ok" } else { "FAILED" }
                 );
             }
-            println!("wrote {}/report.md", dir.display());
+            magg::put!("wrote {}/report.md", dir.display());
             if results.iter().any(|r| !r.ok) {
                 anyhow::bail!("some experiments failed; their output is in the report");
             }
@@ -1428,8 +1454,8 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
                 (a.width, a.height, a.spp),
                 &dir,
             )?;
-            println!("{}", lab::validate::table(&rows));
-            println!("wrote {}/report.md", dir.display());
+            magg::put!("{}", lab::validate::table(&rows));
+            magg::put!("wrote {}/report.md", dir.display());
             Ok(())
         }
         ExperimentCmd::Links(args) => {
@@ -1452,9 +1478,9 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             let report =
                 runtime()?.block_on(lab::experiment::links(&config, &|m| tracing::info!("{m}")))?;
             let tables = lab::experiment::tables(&report);
-            println!("{tables}");
+            magg::put!("{tables}");
             lab::all::write_links_report(&args.out, &tables)?;
-            println!(
+            magg::put!(
                 "wrote {0}/one_way.csv, {0}/transfers.csv, {0}/links.json, {0}/fig1.5-one-node.png, {0}/fig1.6-many-nodes.png and {0}/report.md",
                 args.out.display()
             );
@@ -1484,13 +1510,13 @@ fn main() {
                 .map_err(anyhow::Error::msg)?;
             let failed = entries.iter().filter(|e| e.pixels.is_none()).count();
             let bad: u64 = entries.iter().map(|e| e.bad_samples).sum();
-            eprintln!(
+            magg::say!(
                 "wrote {} ({} scenes, {failed} not rendered, {bad} NaN or infinite samples)",
                 a.output.display(),
                 entries.len()
             );
             for e in entries.iter().filter(|e| e.pixels.is_none()) {
-                eprintln!("  {}: {}", e.name, e.note);
+                magg::say!("  {}: {}", e.name, e.note);
             }
             Ok(())
         })(),
@@ -1500,8 +1526,8 @@ fn main() {
         Command::RenderNode(node) => magg::node_main(protocol::Role::Render, &node),
         Command::Plot { stats, output } => (|| {
             let plots = lab::timeline::plot(&stats, output.as_deref())?;
-            println!("{}", plots.timeline.display());
-            println!("{}", plots.tinted.display());
+            magg::put!("{}", plots.timeline.display());
+            magg::put!("{}", plots.tinted.display());
             Ok(())
         })(),
         Command::Compare { image, reference } => (|| {
@@ -1519,16 +1545,12 @@ fn main() {
                     c.mean_rel_diff[i] * 100.0
                 );
             }
-            // A reader that stops early (`| head -1`, as scripts read the first line) is
-            // no error; `println!` would panic.
-            match std::io::Write::write_all(&mut std::io::stdout().lock(), text.as_bytes()) {
-                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
-                r => r.context("writing to standard output"),
-            }
+            magg::put_raw!("{text}");
+            Ok(())
         })(),
     };
     if let Err(e) = result {
-        eprintln!("error: {}", magg::report(&e));
+        magg::say!("error: {}", magg::report(&e));
         std::process::exit(1);
     }
 }
