@@ -135,12 +135,29 @@ pub fn write_image(path: &Path, image: &Image) -> Result<(), ImageError> {
     write_atomic(path, &bytes)
 }
 
-/// Writes bytes to `path` via a temporary file in the same folder and a rename.
+/// Writes bytes to `path` via a temporary file in the same folder and a rename, so that a
+/// reader never sees half a file and a failure leaves the old one. What the rename would
+/// replace rather than write to is written the way the user meant: a symbolic link's
+/// target gets the new file (the link stays), and a device, a pipe or a socket (`--stats
+/// /dev/null`, a FIFO a script reads) is written directly (a rename replaced `/dev/null`
+/// itself with a regular file, for the whole machine where run as root).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     let io = |source| ImageError::Io {
         path: path.into(),
         source,
     };
+    let target = link_target(path).map_err(io)?;
+    let path = target.as_path();
+    if let Ok(meta) = fs::metadata(path)
+        && !meta.is_file()
+        && !meta.is_dir()
+    {
+        let written = fs::OpenOptions::new()
+            .write(true)
+            .open(path)
+            .and_then(|mut f| f.write_all(bytes));
+        return written.map_err(io);
+    }
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -161,6 +178,28 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
         return Err(io(e));
     }
     Ok(())
+}
+
+/// Where a write to `path` should land: `path` itself, or, for a symbolic link (a chain of
+/// them, even one that ends at a file not yet there), the path it finally names.
+fn link_target(path: &Path) -> std::io::Result<PathBuf> {
+    let mut at = path.to_path_buf();
+    // The kernel's own limit on links followed in one lookup.
+    for _ in 0..40 {
+        match fs::symlink_metadata(&at) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let next = fs::read_link(&at)?;
+                at = match at.parent() {
+                    Some(dir) if next.is_relative() => dir.join(next),
+                    _ => next,
+                };
+            }
+            _ => return Ok(at),
+        }
+    }
+    Err(std::io::Error::other(
+        "too many levels of symbolic links (a loop?)",
+    ))
 }
 
 /// Reads an image written by magg or another renderer (PNG is sRGB-decoded to linear).
@@ -352,6 +391,74 @@ mod tests {
             write_image(&p, &img).unwrap();
             assert_eq!(read_image(&p).unwrap(), img, "{name}");
         }
+        let _ = fs::remove_dir_all(&dir);
+    }
+
+    /// What a rename would replace instead of writing to: a link's target gets the file and
+    /// the link stays; a pipe and a device are written directly and stay what they are (a
+    /// rename had replaced them, `/dev/null` included, with regular files); a full device
+    /// and a loop of links are errors.
+    #[test]
+    fn writes_land_in_what_links_pipes_and_devices_name() {
+        use std::os::unix::fs::{FileTypeExt, symlink};
+        let dir = std::env::temp_dir().join(format!("magg-write-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        fs::create_dir_all(dir.join("real")).unwrap();
+        symlink("real/target.json", dir.join("link.json")).unwrap();
+        symlink("link.json", dir.join("chain.json")).unwrap();
+        write_atomic(&dir.join("chain.json"), b"through two links").unwrap();
+        assert!(
+            fs::symlink_metadata(dir.join("link.json"))
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert!(
+            fs::symlink_metadata(dir.join("chain.json"))
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        assert_eq!(
+            fs::read(dir.join("real/target.json")).unwrap(),
+            b"through two links"
+        );
+
+        let fifo = dir.join("fifo");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            let reader = {
+                let fifo = fifo.clone();
+                std::thread::spawn(move || fs::read(fifo).unwrap())
+            };
+            write_atomic(&fifo, b"to a reader").unwrap();
+            assert_eq!(reader.join().unwrap(), b"to a reader");
+            assert!(fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
+        }
+
+        write_atomic(Path::new("/dev/null"), b"nothing").unwrap();
+        assert!(
+            fs::metadata("/dev/null")
+                .unwrap()
+                .file_type()
+                .is_char_device()
+        );
+        if Path::new("/dev/full").exists() {
+            assert!(write_atomic(Path::new("/dev/full"), b"no room").is_err());
+            assert!(
+                fs::metadata("/dev/full")
+                    .unwrap()
+                    .file_type()
+                    .is_char_device()
+            );
+        }
+
+        symlink("loop-b", dir.join("loop-a")).unwrap();
+        symlink("loop-a", dir.join("loop-b")).unwrap();
+        let e = write_atomic(&dir.join("loop-a"), b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("symbolic links"), "{e}");
         let _ = fs::remove_dir_all(&dir);
     }
 
