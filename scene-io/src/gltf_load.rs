@@ -237,9 +237,12 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
     for p in &placed {
         for v in &p.data.positions {
+            // A vertex at NaN or infinity takes no part: its triangles are skipped below.
             let w = p.world.transform_point3(*v);
-            lo = lo.min(w);
-            hi = hi.max(w);
+            if w.is_finite() {
+                lo = lo.min(w);
+                hi = hi.max(w);
+            }
         }
     }
     let shift = if lo.is_finite() && hi.is_finite() {
@@ -1420,19 +1423,58 @@ fn place_primitive(p: &PlacedPrimitive, shift: DVec3) -> (MeshData, usize) {
             Some(if det < 0.0 { [t[0], t[2], t[1]] } else { *t })
         })
         .collect();
-    (
-        MeshData {
-            positions,
-            normals,
-            uv0: d.uv0.clone(),
-            uv1: d.uv1.clone(),
-            tangents,
-            colors: d.colors.clone(),
-            triangles,
-            material: p.material,
-        },
-        skipped,
-    )
+    let mut mesh = MeshData {
+        positions,
+        normals,
+        uv0: d.uv0.clone(),
+        uv1: d.uv1.clone(),
+        tangents,
+        colors: d.colors.clone(),
+        triangles,
+        material: p.material,
+    };
+    if !mesh.positions.iter().all(|v| v.is_finite()) {
+        // Every triangle using a vertex at NaN or infinity was skipped above; the vertex
+        // itself goes too, as a description with one is refused where it is checked (a
+        // cluster's fork node). A mesh whose positions are all finite is left as it is.
+        drop_unused_vertices(&mut mesh);
+    }
+    (mesh, skipped)
+}
+
+/// Removes the vertices no triangle of `mesh` uses, keeping the others' order.
+fn drop_unused_vertices(mesh: &mut MeshData) {
+    let n = mesh.positions.len();
+    let mut used = vec![false; n];
+    for &v in mesh.triangles.iter().flatten() {
+        used[v as usize] = true;
+    }
+    let mut new_index = vec![u32::MAX; n];
+    let mut kept = 0u32;
+    for (slot, &u) in new_index.iter_mut().zip(&used) {
+        if u {
+            *slot = kept;
+            kept += 1;
+        }
+    }
+    fn keep<T: Copy>(values: &mut Vec<T>, used: &[bool]) {
+        if values.len() == used.len() {
+            let mut i = 0;
+            values.retain(|_| {
+                i += 1;
+                used[i - 1]
+            });
+        }
+    }
+    keep(&mut mesh.positions, &used);
+    keep(&mut mesh.normals, &used);
+    keep(&mut mesh.uv0, &used);
+    keep(&mut mesh.uv1, &used);
+    keep(&mut mesh.tangents, &used);
+    keep(&mut mesh.colors, &used);
+    for t in &mut mesh.triangles {
+        *t = t.map(|v| new_index[v as usize]);
+    }
 }
 
 #[cfg(test)]
