@@ -105,10 +105,21 @@ fn parse_command_line<T: clap::FromArgMatches>(mut command: clap::Command) -> T 
         }
         Err(e) => {
             let text = e.render().to_string();
-            let first = text
-                .lines()
-                .find(|l| !l.trim().is_empty())
-                .unwrap_or("error: invalid command line");
+            let mut lines = text.lines().skip_while(|l| l.trim().is_empty());
+            let mut first = lines
+                .next()
+                .unwrap_or("error: invalid command line")
+                .trim_end()
+                .to_string();
+            // "the following required arguments were not provided:" names them on the
+            // lines after it, indented: they belong on the one line.
+            if first.ends_with(':') {
+                let named: Vec<&str> = lines
+                    .take_while(|l| l.starts_with("  "))
+                    .map(str::trim)
+                    .collect();
+                first = format!("{first} {}", named.join(", "));
+            }
             say!("{} (see --help)", first.trim_end());
             std::process::exit(2);
         }
@@ -188,7 +199,7 @@ pub fn init_logging(filter: &str) {
 #[derive(Args, Clone, Debug)]
 pub struct SecretArgs {
     /// The cluster secret (visible in process listings: prefer MAGG_SECRET or --secret-file).
-    #[arg(long, hide_env_values = true)]
+    #[arg(long, hide_env_values = true, conflicts_with = "secret_file")]
     pub secret: Option<String>,
     /// A file holding the cluster secret.
     #[arg(long)]

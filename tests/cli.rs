@@ -205,6 +205,34 @@ fn mistakes_are_one_clear_line() {
         &png,
         "auto, on or off",
     );
+    // Flags that cannot go together, of which one was silently ignored (`--topology tiny`
+    // alone spawned the 86 processes of magg).
+    expect_error(
+        &["render", "--topology", "tiny"],
+        &png,
+        "required arguments were not provided: --listen",
+    );
+    expect_error(
+        &["render", "--listen", "127.0.0.1:0", "--spawn", "tiny"],
+        &png,
+        "'--listen <LISTEN>' cannot be used with '--spawn <SPAWN>'",
+    );
+    expect_error(
+        &["render", "--in-process", "--spawn", "tiny"],
+        &png,
+        "'--in-process' cannot be used with '--spawn <SPAWN>'",
+    );
+    expect_error(
+        &[
+            "render",
+            "--secret",
+            "12345678",
+            "--secret-file",
+            "magg-secret",
+        ],
+        &png,
+        "'--secret <SECRET>' cannot be used with '--secret-file <SECRET_FILE>'",
+    );
     // Numbers beyond what any use needs, which overflowed a deadline, a duration or an
     // allocation and ended in a panic or an abort.
     let huge = "18446744073709551615";

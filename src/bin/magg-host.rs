@@ -205,10 +205,12 @@ struct ClusterArgs {
     #[arg(long, default_value = "magg")]
     spawn: String,
     /// Instead of spawning, listen here for nodes started by hand (with --topology).
-    #[arg(long)]
+    // Given with --spawn, one of the two was silently ignored (the spawn).
+    #[arg(long, conflicts_with = "spawn")]
     listen: Option<String>,
     /// The topology the joining nodes fill (with --listen).
-    #[arg(long)]
+    // Without --listen it was silently ignored: `--topology tiny` spawned 86 processes.
+    #[arg(long, requires = "listen")]
     topology: Option<String>,
     #[command(flatten)]
     secret: magg::SecretArgs,
@@ -445,7 +447,7 @@ struct RenderArgs {
     #[arg(short, long, default_value = "magg.png")]
     output: PathBuf,
     /// Render in this one process on all cores (instead of on a cluster).
-    #[arg(long)]
+    #[arg(long, conflicts_with_all = ["spawn", "listen"])]
     in_process: bool,
     /// Continue an interrupted render from its checkpoint `OUTPUT.partial` (on any
     /// cluster, or in one process); the image is the same bytes as an uninterrupted render.
