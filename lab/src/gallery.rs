@@ -29,11 +29,24 @@ pub struct Entry {
     pub bad_samples: u64,
 }
 
-/// Every `.gltf` and `.glb` under `dir`, in name order.
+/// Every `.gltf` and `.glb` under `dir`, in name order, each folder walked once however
+/// many links lead to it: a link to a folder above it (`ln -s . again`) made the walk go
+/// round until the system's limit on links, listing the same scenes dozens of times, and
+/// two such links never ended.
 pub fn scene_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
     let mut out = Vec::new();
+    let mut walked = std::collections::HashSet::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
+        // A folder's identity is its device and inode, whichever path reached it.
+        let id = {
+            use std::os::unix::fs::MetadataExt;
+            let m = std::fs::metadata(&d)?;
+            (m.dev(), m.ino())
+        };
+        if !walked.insert(id) {
+            continue;
+        }
         for e in std::fs::read_dir(&d)? {
             let p = e?.path();
             if p.is_dir() {
@@ -244,6 +257,24 @@ mod tests {
     /// More columns than pictures make a sheet as wide as the pictures (a million columns
     /// wrapped the sheet's size and indexed past its buffer); a sheet too large to write is
     /// refused with its size, not allocated.
+    #[test]
+    fn folders_reached_again_through_links_are_walked_once() {
+        let dir = std::env::temp_dir().join(format!("magg-gallery-loop-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        std::fs::write(dir.join("a.gltf"), "{}").unwrap();
+        std::fs::write(dir.join("sub/b.glb"), "").unwrap();
+        std::os::unix::fs::symlink(".", dir.join("again")).unwrap();
+        std::os::unix::fs::symlink("..", dir.join("sub/up")).unwrap();
+        let names: Vec<String> = scene_files(&dir)
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["a.gltf", "b.glb"]);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     #[test]
     fn columns_beyond_the_pictures_and_sheets_too_large_are_handled() {
         let dir = std::env::temp_dir().join(format!("magg-gallery-{}", std::process::id()));
