@@ -221,6 +221,59 @@ fn nan_positions_are_skipped_with_a_warning() {
     }
 }
 
+/// A sparse accessor without a bufferView stands for `count` elements, all zero but the
+/// few it lists: a count of 10^12 in a file of a few hundred bytes once asked the loader
+/// for 24 TB (an abort). Such a file is refused by name, for positions and for indices.
+#[test]
+fn sparse_accessor_with_a_huge_count_is_refused() {
+    let dir = scratch("hostile-sparse");
+    // The sparse part's one index (u32 0) and its one value (a VEC3 of floats).
+    let mut buf = 0u32.to_le_bytes().to_vec();
+    for v in [1.0f32, 1.0, 1.0] {
+        buf.extend_from_slice(&v.to_le_bytes());
+    }
+    let huge = 1_000_000_000_000u64;
+    for (name, attribute, indices, index_count) in [
+        ("positions.gltf", 0, "", 3),
+        ("indices.gltf", 1, r#", "indices": 2"#, huge),
+    ] {
+        let text = format!(
+            r#"{{
+  "asset": {{"version": "2.0"}},
+  "scene": 0,
+  "scenes": [{{"nodes": [0]}}],
+  "nodes": [{{"mesh": 0}}],
+  "meshes": [{{"primitives": [{{"attributes": {{"POSITION": {attribute}}}{indices}}}]}}],
+  "buffers": [{{"byteLength": {len}, "uri": "data:application/octet-stream;base64,{data}"}}],
+  "bufferViews": [
+    {{"buffer": 0, "byteOffset": 0, "byteLength": 4}},
+    {{"buffer": 0, "byteOffset": 4, "byteLength": 12}}
+  ],
+  "accessors": [
+    {{"componentType": 5126, "count": {huge}, "type": "VEC3", "min": [0,0,0], "max": [1,1,1],
+      "sparse": {{"count": 1, "indices": {{"bufferView": 0, "componentType": 5125}},
+                  "values": {{"bufferView": 1}}}}}},
+    {{"componentType": 5126, "count": 3, "type": "VEC3", "min": [0,0,0], "max": [1,1,1],
+      "sparse": {{"count": 1, "indices": {{"bufferView": 0, "componentType": 5125}},
+                  "values": {{"bufferView": 1}}}}}},
+    {{"componentType": 5125, "count": {index_count}, "type": "SCALAR",
+      "sparse": {{"count": 1, "indices": {{"bufferView": 0, "componentType": 5125}},
+                  "values": {{"bufferView": 0}}}}}}
+  ]
+}}"#,
+            len = buf.len(),
+            data = b64(&buf),
+        );
+        let p = write(&dir, name, &text);
+        let accessor = if attribute == 0 {
+            "accessor 0"
+        } else {
+            "accessor 2"
+        };
+        expect_refused(&p, &dir, &[accessor, "no bufferView"]);
+    }
+}
+
 #[test]
 fn missing_or_empty_textures_fall_back_with_a_warning() {
     let dir = scratch("hostile-texture");

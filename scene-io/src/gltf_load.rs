@@ -48,6 +48,10 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
 /// Largest image accepted, in pixels per side, so a hostile file cannot ask for gigabytes.
 const MAX_IMAGE_SIDE: u32 = 16384;
 
+/// Most bytes an accessor without a bufferView (zeros but for its sparse part) may stand
+/// for, where the file's buffers hold less: see [`check_accessor`].
+const MAX_UNBACKED_BYTES: usize = 16 << 20;
+
 #[derive(Debug, thiserror::Error)]
 pub enum LoadError {
     #[error("{path}: {source}")]
@@ -864,6 +868,22 @@ fn check_accessor(ctx: &Ctx, acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Resul
     let what = || format!("accessor {}", acc.index());
     if count == 0 {
         return Err(ctx.invalid(format!("{} has count 0", what())));
+    }
+    if acc.view().is_none() {
+        // Without a bufferView every element is zero but the few a sparse part lists, so
+        // `count` is bounded by nothing in the file, and reading the accessor allocates for
+        // all of them. Such an accessor may stand for no more data than the file's buffers
+        // hold (as one with a bufferView cannot), or than a floor that small files stay under.
+        let held: usize = buffers.iter().map(Vec::len).sum();
+        let limit = held.max(MAX_UNBACKED_BYTES);
+        if count.checked_mul(elem).is_none_or(|bytes| bytes > limit) {
+            return Err(ctx.invalid(format!(
+                "{} has no bufferView and count {count} ({elem} bytes each): more data than \
+                 the file's buffers hold ({held} bytes) or {} MiB",
+                what(),
+                MAX_UNBACKED_BYTES >> 20
+            )));
+        }
     }
     let check_range = |view: &gltf::buffer::View,
                        offset: usize,
