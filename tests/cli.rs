@@ -205,6 +205,36 @@ fn mistakes_are_one_clear_line() {
         &png,
         "auto, on or off",
     );
+    // One file written twice, or over an input: the second write replaced the first.
+    let scene = dir.join("scene.gltf");
+    std::fs::copy(data().join("scenes/cornell/cornell.gltf"), &scene).unwrap();
+    let scene_bytes = std::fs::read(&scene).unwrap();
+    let png_stats = png.to_str().unwrap().to_string();
+    expect_error(
+        &["render", "--in-process", "--stats", &png_stats],
+        &png,
+        "the image (-o) and the statistics (--stats) would be the same file",
+    );
+    expect_error(
+        &[
+            "render",
+            scene.to_str().unwrap(),
+            "--stats",
+            scene.to_str().unwrap(),
+        ],
+        &png,
+        "the statistics (--stats) and the scene would be the same file",
+    );
+    assert_eq!(std::fs::read(&scene).unwrap(), scene_bytes);
+    let recorded = dir.join("recorded.json");
+    std::fs::write(&recorded, "{}").unwrap();
+    let o = run(host()
+        .arg("simulate")
+        .arg(&recorded)
+        .arg("--json")
+        .arg(&recorded));
+    one_clear_line(&o, &["simulate"], "would be the same file");
+    assert_eq!(std::fs::read(&recorded).unwrap(), b"{}");
     // Flags that cannot go together, of which one was silently ignored (`--topology tiny`
     // alone spawned the 86 processes of magg).
     expect_error(

@@ -101,7 +101,57 @@ pub fn check_settings(config: &RenderConfig) -> Result<(), RenderError> {
     if let Some(p) = &config.stats {
         check_writable_dir(p)?;
     }
+    check_no_file_twice(config)
+}
+
+/// Refuses a render that would write one file twice, or over its own scene: `-o a.png
+/// --stats a.png` wrote the image and then the statistics over it (saying it wrote the
+/// image), and `--stats scene.gltf` replaced the scene.
+fn check_no_file_twice(config: &RenderConfig) -> Result<(), RenderError> {
+    let mut files: Vec<(&str, PathBuf)> = vec![
+        ("the image (-o)", config.output.clone()),
+        (
+            "the image's checkpoint",
+            checkpoint::path_for(&config.output),
+        ),
+    ];
+    if let Some(p) = &config.stats {
+        files.push(("the statistics (--stats)", p.clone()));
+    }
+    if let SceneSource::File(p) = &config.scene {
+        files.push(("the scene", p.clone()));
+    }
+    for (i, (what, a)) in files.iter().enumerate() {
+        for (other, b) in &files[..i] {
+            if same_file(a, b) {
+                return Err(RenderError::Settings(format!(
+                    "{}: {other} and {what} would be the same file",
+                    a.display()
+                )));
+            }
+        }
+    }
     Ok(())
+}
+
+/// Whether two paths name one file: the same device and inode where both exist, else the
+/// same place once their folders are resolved (links, `..`).
+pub fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    if let (Ok(ma), Ok(mb)) = (std::fs::metadata(a), std::fs::metadata(b)) {
+        return (ma.dev(), ma.ino()) == (mb.dev(), mb.ino());
+    }
+    let place = |p: &std::path::Path| {
+        let dir = match p.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => std::path::Path::new("."),
+        };
+        Some(std::fs::canonicalize(dir).ok()?.join(p.file_name()?))
+    };
+    match (place(a), place(b)) {
+        (Some(pa), Some(pb)) => pa == pb,
+        _ => a == b,
+    }
 }
 
 pub fn check_output(path: &std::path::Path) -> Result<(), RenderError> {

@@ -682,7 +682,30 @@ struct SimulateArgs {
     json: Option<PathBuf>,
 }
 
+/// Refuses a command whose outputs would overwrite one of its inputs or each other (`simulate
+/// stats.json --json stats.json` replaced the recorded render with the prediction): the
+/// files it reads and writes, by what each one is.
+fn refuse_same_files(files: &[(&str, Option<&std::path::Path>)]) -> Result<()> {
+    let named: Vec<(&str, &std::path::Path)> = files
+        .iter()
+        .filter_map(|(w, p)| Some((*w, (*p)?)))
+        .collect();
+    for (i, (what, a)) in named.iter().enumerate() {
+        for (other, b) in &named[..i] {
+            if host::inprocess::same_file(a, b) {
+                anyhow::bail!("{}: {other} and {what} would be the same file", a.display());
+            }
+        }
+    }
+    Ok(())
+}
+
 fn simulate(a: SimulateArgs) -> Result<()> {
+    refuse_same_files(&[
+        ("the recorded statistics", Some(&a.stats)),
+        ("--overheads-from", a.overheads_from.as_deref()),
+        ("the prediction (--json)", a.json.as_deref()),
+    ])?;
     let text = std::fs::read_to_string(&a.stats)
         .with_context(|| format!("reading {}", a.stats.display()))?;
     let overrides = lab::simulate::Overrides {
@@ -999,6 +1022,12 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 fn bench_rays(a: RaysArgs) -> Result<()> {
+    refuse_same_files(&[
+        ("the mesh", Some(&a.mesh)),
+        ("the rays", Some(&a.rays)),
+        ("the hits (--hits)", a.hits.as_deref()),
+        ("the figures (--json)", a.json.as_deref()),
+    ])?;
     let cfg = lab::raybench::RaysConfig {
         mesh: a.mesh,
         rays: a.rays,
