@@ -80,6 +80,8 @@ pub enum TopologyError {
     },
     #[error("unknown topology preset {0:?} (magg, magg1000, tiny, or grid:CARDSxROWSxCOLS)")]
     UnknownPreset(String),
+    #[error("{0}: no such topology file")]
+    NoFile(std::path::PathBuf),
     #[error("invalid topology: {0}")]
     Invalid(String),
     #[error("invalid topology: {0}")]
@@ -148,6 +150,10 @@ impl Topology {
         match preset {
             // A grid of numbers the grid refuses (a zero, too many nodes) says why.
             Err(e) if spec.starts_with("grid:") => Err(e),
+            // What looks like a path was meant as a file (`--spawn my.toml`), not a preset.
+            _ if spec.contains('/') || spec.ends_with(".toml") => {
+                Err(TopologyError::NoFile(path.to_path_buf()))
+            }
             _ => Err(TopologyError::UnknownPreset(spec.to_string())),
         }
     }
@@ -598,6 +604,10 @@ mod tests {
         assert!(e.contains("unknown topology preset"), "{e}");
         let e = Topology::resolve("no-such").unwrap_err().to_string();
         assert!(e.contains("unknown topology preset"), "{e}");
+        for file in ["no-such.toml", "topologies/mine"] {
+            let e = Topology::resolve(file).unwrap_err().to_string();
+            assert_eq!(e, format!("{file}: no such topology file"));
+        }
     }
 
     #[test]

@@ -201,7 +201,7 @@ struct CacheArgs {
 /// Where the cluster comes from: spawned here, or nodes joining from elsewhere.
 #[derive(Args, Clone)]
 struct ClusterArgs {
-    /// Topology to spawn as local processes: magg, tiny, grid:CARDSxROWSxCOLS or a TOML file.
+    /// Topology to spawn as local processes: magg, magg1000, tiny, grid:CARDSxROWSxCOLS or a TOML file.
     #[arg(long, default_value = "magg")]
     spawn: String,
     /// Instead of spawning, listen here for nodes started by hand (with --topology).
