@@ -487,13 +487,18 @@ fn load_textures(
             }
         }
     }
-    let mut textures = Vec::new();
+    // Textures alike (one image, one sampler's settings) become one texture, which the
+    // materials naming any of them share: a file may name one image in many textures, and
+    // each texture holds its texels (and becomes tiles) on its own.
+    let mut alike: HashMap<(usize, [u8; 3]), u32> = HashMap::new();
+    let mut kept: Vec<(usize, String, Wrap, Wrap, Filter)> = Vec::new();
     let mut map = Vec::new();
     for t in doc.textures() {
-        let Some(Some((w, h, rgba))) = images.get(t.source().index()) else {
+        let source = t.source().index();
+        if !matches!(images.get(source), Some(Some(_))) {
             map.push(None);
             continue;
-        };
+        }
         let sampler = t.sampler();
         let wrap = |m: gltf::texture::WrappingMode| match m {
             gltf::texture::WrappingMode::ClampToEdge => Wrap::ClampToEdge,
@@ -504,17 +509,39 @@ fn load_textures(
             Some(gltf::texture::MagFilter::Nearest) => Filter::Nearest,
             _ => Filter::Linear,
         };
-        map.push(Some(textures.len() as u32));
-        textures.push(TextureDesc {
-            name: t
+        let (wrap_s, wrap_t) = (wrap(sampler.wrap_s()), wrap(sampler.wrap_t()));
+        let key = (source, [wrap_s as u8, wrap_t as u8, filter as u8]);
+        let index = *alike.entry(key).or_insert_with(|| {
+            let name = t
                 .name()
                 .map(str::to_string)
-                .unwrap_or_else(|| format!("texture {}", t.index())),
-            width: *w,
-            height: *h,
-            rgba: rgba.clone(),
-            wrap_s: wrap(sampler.wrap_s()),
-            wrap_t: wrap(sampler.wrap_t()),
+                .unwrap_or_else(|| format!("texture {}", t.index()));
+            kept.push((source, name, wrap_s, wrap_t, filter));
+            (kept.len() - 1) as u32
+        });
+        map.push(Some(index));
+    }
+    // Each image's texels are copied only for a texture other than its last: the last
+    // takes them.
+    let mut last_use = vec![usize::MAX; images.len()];
+    for (i, k) in kept.iter().enumerate() {
+        last_use[k.0] = i;
+    }
+    let mut textures = Vec::with_capacity(kept.len());
+    for (i, (source, name, wrap_s, wrap_t, filter)) in kept.into_iter().enumerate() {
+        let (width, height, rgba) = if last_use[source] == i {
+            images[source].take()
+        } else {
+            images[source].clone()
+        }
+        .expect("kept textures name decoded images");
+        textures.push(TextureDesc {
+            name,
+            width,
+            height,
+            rgba,
+            wrap_s,
+            wrap_t,
             filter,
         });
     }
@@ -1661,6 +1688,50 @@ mod tests {
             packed_floats::<2>(&prims[0].get(&gltf::Semantic::Positions).unwrap(), &buffers)
                 .is_none()
         );
+    }
+
+    /// Textures naming one image with the same sampler settings are one texture (the
+    /// decoded texels held once: a 16384x16384 image named by four textures was four copies
+    /// of a GiB); another sampler's settings keep a texture of their own.
+    #[test]
+    fn textures_alike_share_one_decoded_image() {
+        let mut png = Vec::new();
+        image::RgbaImage::from_raw(2, 1, vec![255, 0, 0, 255, 0, 255, 0, 255])
+            .unwrap()
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        let uri = format!(
+            "data:image/png;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&png)
+        );
+        let material = |t: usize| {
+            format!(r#"{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":{t}}}}}}}"#)
+        };
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[]}}],
+            "images":[{{"uri":"{uri}"}}],
+            "samplers":[{{"magFilter":9728}}],
+            "textures":[{{"source":0}},{{"source":0}},{{"source":0,"sampler":0}},{{"source":0}}],
+            "materials":[{},{},{},{}]}}"#,
+            material(0),
+            material(1),
+            material(2),
+            material(3)
+        );
+        let loaded = load_gltf_bytes(Path::new("shared-image.gltf"), json.as_bytes()).unwrap();
+        let textures = &loaded.desc.textures;
+        assert_eq!(textures.len(), 2, "one image under two samplers' settings");
+        let used: Vec<u32> = loaded.desc.materials[..4]
+            .iter()
+            .map(|m| m.base_color_tex.unwrap().texture)
+            .collect();
+        assert_eq!(used, [0, 0, 1, 0]);
+        assert_eq!(textures[0].filter, Filter::Linear);
+        assert_eq!(textures[1].filter, Filter::Nearest);
+        for t in textures {
+            assert_eq!((t.width, t.height), (2, 1));
+            assert_eq!(t.rgba, [255, 0, 0, 255, 0, 255, 0, 255]);
+        }
     }
 
     #[test]
