@@ -121,6 +121,36 @@ fn in_process_stats_record_every_tile() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(dir.join("p/s.timeline.png").is_file());
     assert!(dir.join("p/s.nodes.png").is_file());
+    // A render run in its folder names its image there (`-o NAME.png`); plotted from the
+    // folder above, the image is found beside the stats file (it was looked for in the
+    // folder above, after half the pictures were drawn).
+    let o = run(host()
+        .current_dir(&dir)
+        .args([
+            "render",
+            "--in-process",
+            "--quiet",
+            "--width",
+            "8",
+            "--height",
+            "8",
+        ])
+        .args(["--spp", "1", "-o", "plot-beside.png", "--stats", "b.json"]));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let above = dir.parent().unwrap();
+    let name = dir.file_name().unwrap();
+    let o = run(host()
+        .current_dir(above)
+        .arg("plot")
+        .arg(Path::new(name).join("b.json")));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(dir.join("b.nodes.png").is_file());
+    // A stats file whose image is nowhere: said as a missing file, and nothing drawn.
+    std::fs::remove_file(dir.join("plot-beside.png")).unwrap();
+    std::fs::remove_file(dir.join("b.timeline.png")).unwrap();
+    let o = run(host().arg("plot").arg(dir.join("b.json")));
+    one_clear_line(&o, &["plot"], "plot-beside.png: No such file or directory");
+    assert!(!dir.join("b.timeline.png").exists());
 }
 
 fn expect_error(args: &[&str], out: &std::path::Path, needle: &str) {

@@ -94,9 +94,18 @@ pub fn plot(stats: &Path, out_dir: Option<&Path>) -> Result<Plots, LabError> {
         timeline: dir.join(format!("{stem}.timeline.png")),
         tinted: dir.join(format!("{stem}.nodes.png")),
     };
+    // The image is named as the render saw it: relative to where it ran, or absolute. A
+    // relative name is looked for beside the stats file first (a render run in its folder
+    // writes both there; plotted from elsewhere, the name alone pointed into the wrong
+    // folder), then from here. Read before anything is drawn, so that a missing image
+    // leaves no half of the pictures behind.
+    let recorded = Path::new(&records.output);
+    let beside = match stats.parent() {
+        Some(d) if recorded.is_relative() => d.join(recorded),
+        _ => recorded.to_path_buf(),
+    };
+    let image = scene_io::read_image(if beside.exists() { &beside } else { recorded })?;
     timeline_png(&plots.timeline, &records)?;
-    // The image is named as the render saw it: relative to where it ran, or absolute.
-    let image = scene_io::read_image(Path::new(&records.output))?;
     tinted_png(&plots.tinted, &records, &image)?;
     Ok(plots)
 }

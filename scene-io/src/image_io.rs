@@ -205,6 +205,12 @@ fn link_target(path: &Path) -> std::io::Result<PathBuf> {
 /// Reads an image written by magg or another renderer (PNG is sRGB-decoded to linear).
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
     let format = Format::of(path).ok_or_else(|| ImageError::UnknownFormat { path: path.into() })?;
+    // A file that is not there (or cannot be opened) is said as such, not as "not a valid
+    // image", which is what the decoders make of it.
+    fs::File::open(path).map_err(|source| ImageError::Io {
+        path: path.into(),
+        source,
+    })?;
     let decode = |message: String| ImageError::Decode {
         path: path.into(),
         message,

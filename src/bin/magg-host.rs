@@ -1562,10 +1562,9 @@ fn main() {
             Ok(())
         })(),
         Command::Compare { image, reference } => (|| {
-            let a = scene_io::read_image(&image)
-                .with_context(|| format!("reading {}", image.display()))?;
-            let b = scene_io::read_image(&reference)
-                .with_context(|| format!("reading {}", reference.display()))?;
+            // Its errors name the file already.
+            let a = scene_io::read_image(&image)?;
+            let b = scene_io::read_image(&reference)?;
             let c = lab::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
             let mut text = format!("relMSE {:.6e}\n", c.rel_mse);
             for (i, ch) in ["R", "G", "B"].iter().enumerate() {
