@@ -274,6 +274,65 @@ fn sparse_accessor_with_a_huge_count_is_refused() {
     }
 }
 
+/// glTF's nodes form disjoint trees. A node reached twice (two parents, one parent naming it
+/// twice, a root that is also a child) is refused by name: it was placed once per way down,
+/// and 18 levels of `children [i+1, i+1]` gave 262,144 copies of a mesh and a render that
+/// did not end. Cycles and depth keep their own messages.
+#[test]
+fn nodes_reached_twice_are_refused() {
+    let dir = scratch("hostile-nodes");
+    let with_nodes = |roots: &str, nodes: &str| {
+        triangle_gltf(&TRI, &[0, 1, 2], None, "")
+            .replace(
+                r#""scenes": [{"nodes": [0]}]"#,
+                &format!(r#""scenes": [{{"nodes": {roots}}}]"#),
+            )
+            .replace(r#""nodes": [{"mesh": 0}]"#, &format!(r#""nodes": {nodes}"#))
+    };
+    let chain = |levels: usize, children: &str| {
+        let mut nodes: Vec<String> = (0..levels)
+            .map(|i| children.replace('N', &(i + 1).to_string()))
+            .collect();
+        nodes.push(r#"{"mesh": 0}"#.into());
+        format!("[{}]", nodes.join(", "))
+    };
+    for (name, roots, nodes, needles) in [
+        (
+            "listed-twice.gltf",
+            "[0]".to_string(),
+            chain(3, r#"{"children": [N, N]}"#),
+            &["node 3 is listed twice as a child of node 2"][..],
+        ),
+        (
+            "two-parents.gltf",
+            "[0, 1]".to_string(),
+            r#"[{"children": [2]}, {"children": [2]}, {"mesh": 0}]"#.to_string(),
+            &["node 2 is both a child of node 1 and a child of node 0"][..],
+        ),
+        (
+            "root-and-child.gltf",
+            "[0, 1]".to_string(),
+            r#"[{"children": [1]}, {"mesh": 0}]"#.to_string(),
+            &["node 1 is both", "a root of the scene", "a child of node 0"][..],
+        ),
+        (
+            "cycle.gltf",
+            "[0]".to_string(),
+            r#"[{"children": [1]}, {"children": [0], "mesh": 0}]"#.to_string(),
+            &["cycle", "node 0"][..],
+        ),
+        (
+            "deep.gltf",
+            "[0]".to_string(),
+            chain(300, r#"{"children": [N]}"#),
+            &["deeper than 256 levels"][..],
+        ),
+    ] {
+        let p = write(&dir, name, &with_nodes(&roots, &nodes));
+        expect_refused(&p, &dir, needles);
+    }
+}
+
 #[test]
 fn missing_or_empty_textures_fall_back_with_a_warning() {
     let dir = scratch("hostile-texture");

@@ -162,14 +162,23 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     let mut placed: Vec<PlacedPrimitive> = Vec::new();
     let mut cameras: Vec<(usize, String, DMat4, Projection, Option<f32>)> = Vec::new();
     let mut lights: Vec<(DMat4, gltf::khr_lights_punctual::Light)> = Vec::new();
-    let mut stack: Vec<(gltf::Node, DMat4, usize)> =
-        scene.nodes().map(|n| (n, DMat4::IDENTITY, 0)).collect();
-    let mut visited = 0usize;
-    while let Some((node, parent, depth)) = stack.pop() {
-        visited += 1;
-        if depth > 256 || visited > 1_000_000 {
-            return Err(ctx.invalid("node hierarchy is deeper than 256 levels or has a cycle"));
+    let mut stack: Vec<(gltf::Node, DMat4, usize, Option<usize>)> = scene
+        .nodes()
+        .map(|n| (n, DMat4::IDENTITY, 0, None))
+        .collect();
+    // The parent each node was first reached from (`Some(None)`: a root of the scene).
+    let mut reached: Vec<Option<Option<usize>>> = vec![None; doc.nodes().len()];
+    while let Some((node, parent, depth, from)) = stack.pop() {
+        if depth > 256 {
+            return Err(ctx.invalid(format!(
+                "node hierarchy is deeper than 256 levels (at node {})",
+                node_name(&node)
+            )));
         }
+        if let Some(first) = reached[node.index()] {
+            return Err(ctx.invalid(reached_twice(&node, first, from, &reached)));
+        }
+        reached[node.index()] = Some(from);
         let local =
             DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(|v| v as f64)));
         let world = parent * local;
@@ -233,7 +242,7 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
             }
         }
         for child in node.children() {
-            stack.push((child, world, depth + 1));
+            stack.push((child, world, depth + 1, Some(node.index())));
         }
     }
 
@@ -306,6 +315,41 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
         warnings,
         origin_shift: shift,
     })
+}
+
+/// Why `node`, reached again from `from` after first from `first`, is refused: a cycle where
+/// it is an ancestor of `from` along the ways first taken, else a node with two parents (or
+/// a root that is also a child, or listed twice), which glTF forbids (its nodes form
+/// disjoint trees) and which would place its subtree once per way down.
+fn reached_twice(
+    node: &gltf::Node,
+    first: Option<usize>,
+    from: Option<usize>,
+    reached: &[Option<Option<usize>>],
+) -> String {
+    let mut up = from;
+    while let Some(a) = up {
+        if a == node.index() {
+            return format!(
+                "node hierarchy has a cycle (node {} is its own ancestor)",
+                node_name(node)
+            );
+        }
+        up = reached[a].flatten();
+    }
+    let way = |p: Option<usize>| match p {
+        Some(p) => format!("a child of node {p}"),
+        None => "a root of the scene".to_string(),
+    };
+    let how = if first == from {
+        format!("listed twice as {}", way(first))
+    } else {
+        format!("both {} and {}", way(first), way(from))
+    };
+    format!(
+        "node {} is {how}: glTF requires the node hierarchy to be disjoint trees",
+        node_name(node)
+    )
 }
 
 /// A primitive that names an accessor the file does not have.
