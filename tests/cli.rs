@@ -411,6 +411,73 @@ fn a_listen_address_that_cannot_be_writes_no_secret() {
         std::fs::read_to_string(&secret).unwrap(),
         "the secret of a host already running"
     );
+    // A host that listens with a secret file there from before uses that secret: its nodes
+    // join with it, and the file stays as it was (a new secret replaced it, whatever it was).
+    let mut host = Logged::start(
+        host()
+            .current_dir(&dir)
+            .env_remove("MAGG_SECRET")
+            .env("MAGG_LOG", "info")
+            .args([
+                "render", "--quiet", "--width", "8", "--height", "8", "--spp", "1",
+            ])
+            .args(["--listen", "127.0.0.1:0", "--topology", "grid:1x1x1", "-o"])
+            .arg(dir.join("x.png")),
+    );
+    let line = host
+        .wait_for("to join at ", std::time::Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("the host did not listen: {}", host.log()));
+    let addr = line
+        .rsplit("to join at ")
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+    assert!(
+        host.log()
+            .contains("using the cluster secret in magg-secret"),
+        "{}",
+        host.log()
+    );
+    let _nodes: Vec<Logged> = ["fork-node", "render-node"]
+        .into_iter()
+        .map(|role| {
+            Logged::start(
+                std::process::Command::new(env!("CARGO_BIN_EXE_magg-host"))
+                    .args([
+                        role,
+                        "--join",
+                        &addr,
+                        "--listen",
+                        "127.0.0.1:0",
+                        "--log",
+                        "warn",
+                    ])
+                    .arg("--secret-file")
+                    .arg(&secret),
+            )
+        })
+        .collect();
+    assert_eq!(
+        host.wait_exit(std::time::Duration::from_secs(60)),
+        Some(Some(0)),
+        "{}",
+        host.log()
+    );
+    assert!(dir.join("x.png").exists());
+    assert_eq!(
+        std::fs::read_to_string(&secret).unwrap(),
+        "the secret of a host already running"
+    );
+    // One that holds no secret (too short to be one) is said, naming the file.
+    std::fs::write(&secret, "short").unwrap();
+    let o = listen("127.0.0.1:0");
+    one_clear_line(
+        &o,
+        &["render", "--listen"],
+        "the cluster secret in magg-secret",
+    );
+    assert_eq!(std::fs::read_to_string(&secret).unwrap(), "short");
 }
 
 /// A log filter that does not parse is said once, and the command goes on at `info` (it

@@ -198,6 +198,10 @@ struct CacheArgs {
     caches: Vec<f64>,
 }
 
+/// Where a host listening for nodes started by hand, given no secret, keeps the one it
+/// generates, for the nodes to read.
+const GENERATED_SECRET: &str = "magg-secret";
+
 /// Where the cluster comes from: spawned here, or nodes joining from elsewhere.
 #[derive(Args, Clone)]
 struct ClusterArgs {
@@ -235,13 +239,35 @@ impl ClusterArgs {
         };
         let topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
         // A secret generated for nodes started by hand goes to a file they can read, once
-        // the host listens (`host::cluster::bind`).
+        // the host listens (`host::cluster::bind`). A file of that name already there is
+        // used, not replaced: it is an earlier run's secret, which nodes may hold (or a file
+        // of the user's, which the generated secret overwrote).
+        let listening = matches!(mode, host::cluster::ClusterMode::Listen(_));
+        let earlier = std::path::Path::new(GENERATED_SECRET);
         let (secret, write_secret) = match self.secret.resolve()? {
             Some(s) => (s, None),
+            None if listening && earlier.exists() => {
+                let from_file = magg::SecretArgs {
+                    secret: None,
+                    secret_file: Some(earlier.into()),
+                };
+                let s = from_file
+                    .resolve()
+                    .and_then(|s| s.context("no secret in it"))
+                    .with_context(|| {
+                        format!(
+                            "the cluster secret in {GENERATED_SECRET}, there from before \
+                             (remove the file to have a new one generated)"
+                        )
+                    })?;
+                tracing::info!(
+                    "using the cluster secret in {GENERATED_SECRET}, there from before: give nodes --secret-file {GENERATED_SECRET}"
+                );
+                (s, None)
+            }
             None => (
                 protocol::Secret::generate(),
-                matches!(mode, host::cluster::ClusterMode::Listen(_))
-                    .then(|| std::path::PathBuf::from("magg-secret")),
+                listening.then(|| std::path::PathBuf::from(GENERATED_SECRET)),
             ),
         };
         Ok(host::cluster::ClusterConfig {
