@@ -10,7 +10,7 @@ use protocol::{
 };
 use tokio::net::{TcpListener, TcpStream};
 
-use super::{Delivery, Fabric, MAX_PENDING_HANDSHAKES, links::expected_direct};
+use super::{Delivery, Fabric, links::expected_direct, pending_handshakes_allowed};
 use crate::topology::Topology;
 
 /// Why a connection to a peer could not be made.
@@ -43,7 +43,8 @@ impl Fabric {
     /// Accepts connections forever: handshake, check the caller's claim, attach.
     pub(crate) fn serve(&self, listener: TcpListener) {
         let me = self.clone();
-        let pending = Arc::new(tokio::sync::Semaphore::new(MAX_PENDING_HANDSHAKES));
+        let allowed = pending_handshakes_allowed(self.inner.topology.len());
+        let pending = Arc::new(tokio::sync::Semaphore::new(allowed));
         tokio::spawn(async move {
             loop {
                 let (stream, addr) = match listener.accept().await {

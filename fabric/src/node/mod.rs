@@ -57,8 +57,18 @@ pub const FLAG_RELATIVE_TIMES: u8 = 2;
 /// Header flag: this frame answers the request with the same tag.
 pub const FLAG_REPLY: u8 = 4;
 
-/// Most connections a process lets sit in the handshake at once.
+/// Most connections a process lets sit in the handshake at once, in a cluster of up to as
+/// many nodes; a larger one allows one per node (see [`pending_handshakes_allowed`]).
 pub const MAX_PENDING_HANDSHAKES: usize = 256;
+
+/// How many connections may be in the handshake at once in a cluster of `nodes` nodes. At
+/// formation every node calls the host at about the same time: `magg1000`'s 1051 processes,
+/// spawned on a loaded 2-core machine, had more than 256 handshakes waiting there, and the
+/// host closed the rest, which ended the render ("a spawned render node exited before the
+/// cluster formed"). Unauthenticated connections stay bounded, by the cluster's own size.
+pub fn pending_handshakes_allowed(nodes: usize) -> usize {
+    MAX_PENDING_HANDSHAKES.max(nodes.saturating_add(1))
+}
 
 /// A connection with nothing to send for this long sends a heartbeat, so the far end can
 /// tell a quiet peer from a vanished one (a machine switched off or cut from the network
@@ -324,5 +334,23 @@ impl Fabric {
 
     pub fn is_closing(&self) -> bool {
         self.inner.closing.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every node of a cluster may be in its handshake with the host at once: the largest
+    /// preset's too (it had 256 places for 1051 nodes), and small clusters keep the floor.
+    #[test]
+    fn every_node_of_a_cluster_may_handshake_at_once() {
+        for name in ["tiny", "magg", "magg1000"] {
+            let t = crate::Topology::preset(name).unwrap();
+            let allowed = pending_handshakes_allowed(t.len());
+            assert!(allowed > t.len(), "{name}: {allowed} for {} nodes", t.len());
+            assert!(allowed >= MAX_PENDING_HANDSHAKES, "{name}");
+        }
+        assert_eq!(pending_handshakes_allowed(usize::MAX), usize::MAX);
     }
 }
