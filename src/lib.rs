@@ -334,9 +334,24 @@ pub async fn stop_signal() -> &'static str {
     ) else {
         return std::future::pending().await;
     };
-    tokio::select! {
-        _ = term.recv() => "SIGTERM",
-        _ = int.recv() => "SIGINT",
+    let (name, number) = tokio::select! {
+        _ = term.recv() => ("SIGTERM", 15),
+        _ = int.recv() => ("SIGINT", 2),
+    };
+    STOPPED_BY.store(number, std::sync::atomic::Ordering::Relaxed);
+    name
+}
+
+/// The signal [`stop_signal`] last saw, as its number (0 before any).
+static STOPPED_BY: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
+
+/// The exit status of a render stopped by a signal: 128 plus its number, as shells report a
+/// process the signal ended (130 for Ctrl-C, 143 for SIGTERM, what `docker stop` and service
+/// managers send; it said 130 for both).
+pub fn stopped_exit_code() -> i32 {
+    match STOPPED_BY.load(std::sync::atomic::Ordering::Relaxed) {
+        0 => 130,
+        n => 128 + n,
     }
 }
 

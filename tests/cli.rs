@@ -934,3 +934,42 @@ fn a_closed_or_full_stderr_loses_no_image() {
     );
     assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
 }
+
+/// SIGTERM (what `docker stop` and service managers send) stops a render with its finished
+/// lines kept, and the exit status says which signal it was: 143, as a shell reports a
+/// process SIGTERM ended (it said 130, Ctrl-C's, for both).
+#[test]
+fn sigterm_stops_a_render_with_status_143() {
+    let dir = scratch("sigterm");
+    let out = dir.join("long.png");
+    let mut render = Logged::start(
+        host()
+            .env("MAGG_LOG", "info")
+            .args([
+                "render",
+                "--in-process",
+                "--threads",
+                "1",
+                "--denoise",
+                "off",
+            ])
+            .args(["--width", "256", "--height", "256", "--spp", "4096", "-o"])
+            .arg(&out),
+    );
+    render
+        .wait_for("spp (path)", std::time::Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("the render did not begin: {}", render.log()));
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_raw(render.pid() as i32).unwrap(),
+        rustix::process::Signal::TERM,
+    );
+    let code = render.wait_exit(std::time::Duration::from_secs(60));
+    assert_eq!(code, Some(Some(143)), "{}", render.log());
+    assert!(
+        render.log().contains("SIGTERM: stopping the render"),
+        "{}",
+        render.log()
+    );
+    assert!(!out.exists(), "no image from a stopped render");
+    assert!(dir.join("long.png.partial").exists(), "{}", render.log());
+}

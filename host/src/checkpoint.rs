@@ -79,7 +79,7 @@ impl CheckpointKey {
     /// The first difference from `other`, in words; `None` if the keys are equal.
     fn difference(&self, other: &CheckpointKey) -> Option<String> {
         if self.scene_sha256 != other.scene_sha256 {
-            return Some("it was made from another scene (or another --env)".into());
+            return Some("it was made from another scene (or another --environment)".into());
         }
         if self.chunk_triangles != other.chunk_triangles {
             return Some(format!(

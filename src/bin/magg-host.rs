@@ -1001,7 +1001,7 @@ fn render(args: RenderArgs) -> Result<()> {
             Err(host::distributed::ClusterRenderError::Interrupted) => {
                 magg::say!("interrupted; the cluster was stopped and no image was written");
                 resume_hint(&args.output);
-                std::process::exit(130);
+                std::process::exit(magg::stopped_exit_code());
             }
             Err(e) => {
                 let e = anyhow::Error::from(e);
@@ -1030,7 +1030,7 @@ fn render(args: RenderArgs) -> Result<()> {
     let stats = match host::inprocess::render_in_process_until(&config, &cancel) {
         Err(e @ host::RenderError::Interrupted { .. }) => {
             magg::say!("{e}");
-            std::process::exit(130);
+            std::process::exit(magg::stopped_exit_code());
         }
         r => r?,
     };
