@@ -973,3 +973,33 @@ fn sigterm_stops_a_render_with_status_143() {
     assert!(!out.exists(), "no image from a stopped render");
     assert!(dir.join("long.png.partial").exists(), "{}", render.log());
 }
+
+/// compare with a reference whose mean is 0 says so instead of a relative difference (it
+/// printed +0.000% for 0.5 against 0), and an image holding NaN is an error naming it (it
+/// printed relMSE NaN and exited 0).
+#[test]
+fn compare_says_what_it_cannot_measure() {
+    let dir = scratch("compare-edges");
+    let write = |name: &str, value: f32| {
+        let mut img = renderer::Image::new(2, 2);
+        img.pixels.iter_mut().for_each(|p| *p = [value; 3]);
+        let path = dir.join(name);
+        scene_io::image_io::write_image(&path, &img).unwrap();
+        path
+    };
+    let (half, zero, nan) = (
+        write("half.pfm", 0.5),
+        write("zero.pfm", 0.0),
+        write("nan.pfm", f32::NAN),
+    );
+    let o = run(host().arg("compare").arg(&half).arg(&zero));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("mean R: 0.50000 vs 0.00000 (the reference's mean is 0)"),
+        "{out}"
+    );
+    let o = run(host().arg("compare").arg(&half).arg(&nan));
+    one_clear_line(&o, &["compare"], "nan.pfm: 12 pixel values are not finite");
+    assert!(o.stdout.is_empty());
+}

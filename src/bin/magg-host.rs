@@ -1591,14 +1591,36 @@ fn main() {
             // Its errors name the file already.
             let a = scene_io::read_image(&image)?;
             let b = scene_io::read_image(&reference)?;
+            // A NaN or infinite value makes every figure NaN or infinite, which read as
+            // figures (relMSE NaN, exit 0): say which image holds them instead.
+            for (path, img) in [(&image, &a), (&reference, &b)] {
+                let bad = img
+                    .pixels
+                    .iter()
+                    .flatten()
+                    .filter(|v| !v.is_finite())
+                    .count();
+                if bad > 0 {
+                    anyhow::bail!(
+                        "{}: {bad} pixel values are not finite numbers (NaN or infinite): \
+                         no error can be measured",
+                        path.display()
+                    );
+                }
+            }
             let c = lab::compare::compare(&a, &b).map_err(anyhow::Error::msg)?;
             let mut text = format!("relMSE {:.6e}\n", c.rel_mse);
             for (i, ch) in ["R", "G", "B"].iter().enumerate() {
+                // Against a reference mean of 0 no relative difference exists (it said
+                // +0.000% for 0.5 against 0).
+                let diff = if c.mean_b[i] == 0.0 && c.mean_a[i] != 0.0 {
+                    "the reference's mean is 0".to_string()
+                } else {
+                    format!("{:+.3}%", c.mean_rel_diff[i] * 100.0)
+                };
                 text += &format!(
-                    "mean {ch}: {:.5} vs {:.5} ({:+.3}%)\n",
-                    c.mean_a[i],
-                    c.mean_b[i],
-                    c.mean_rel_diff[i] * 100.0
+                    "mean {ch}: {:.5} vs {:.5} ({diff})\n",
+                    c.mean_a[i], c.mean_b[i]
                 );
             }
             magg::put_raw!("{text}");
