@@ -391,3 +391,29 @@ fn images_without_a_source_or_mime_type_fall_back_with_a_warning() {
         );
     }
 }
+
+/// A texture naming a texture coordinate set beyond 0 and 1 (which meshes keep) is said and
+/// read from set 0: it read (0, 0) at surfaces, and set 0 where an emissive one lit the
+/// scene, and said nothing.
+#[test]
+fn texture_coordinate_sets_beyond_one_are_said() {
+    let dir = scratch("hostile-texcoord");
+    let png = b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x01\0\0\0\x01\x08\x02\0\0\0\x90wS\xde\0\0\0\x0cIDATx\x9cc\xf8\xcf\xc0\0\0\x03\x01\x01\0\xc9\xfe\x92\xef\0\0\0\0IEND\xaeB`\x82";
+    let extra = format!(
+        r#", "images": [{{"uri": "data:image/png;base64,{}"}}], "textures": [{{"source": 0}}],
+        "materials": [{{"pbrMetallicRoughness": {{"baseColorTexture": {{"index": 0, "texCoord": 2}}}},
+                        "emissiveTexture": {{"index": 0, "texCoord": 3}}, "emissiveFactor": [1, 1, 1]}}]"#,
+        b64(png)
+    );
+    let text = triangle_gltf(&TRI, &[0, 1, 2], None, &extra)
+        .replace(r#""indices": 0}"#, r#""indices": 0, "material": 0}"#);
+    let p = write(&dir, "texcoord2.gltf", &text);
+    let (ok, err) = try_render(&p, &dir.join("o.png"));
+    assert!(ok, "{err}");
+    for needle in [
+        "the base colour texture reads texture coordinate set 2",
+        "the emissive texture reads texture coordinate set 3",
+    ] {
+        assert!(err.contains(needle), "{err}");
+    }
+}

@@ -748,6 +748,28 @@ fn convert_material(ctx: &mut Ctx, m: &gltf::Material, map: &[Option<u32>]) -> M
     if m.occlusion_texture().is_some() {
         // A path tracer computes occlusion itself; the baked map would count it twice.
     }
+    // Meshes keep texture coordinate sets 0 and 1: a texture naming another read (0, 0) at
+    // its surfaces but set 0 where an emissive one lit the scene, and said nothing.
+    for (what, t) in [
+        ("base colour", &mut out.base_color_tex),
+        ("metallic-roughness", &mut out.metallic_roughness_tex),
+        ("normal", &mut out.normal_tex),
+        ("emissive", &mut out.emissive_tex),
+        ("specular", &mut out.specular_tex),
+        ("specular colour", &mut out.specular_color_tex),
+        ("transmission", &mut out.transmission_tex),
+    ] {
+        if let Some(t) = t
+            && t.tex_coord > 1
+        {
+            ctx.warnings.push(format!(
+                "material {name:?}: the {what} texture reads texture coordinate set {} \
+                 (sets 0 and 1 are supported): using set 0",
+                t.tex_coord
+            ));
+            t.tex_coord = 0;
+        }
+    }
     out
 }
 
