@@ -265,6 +265,27 @@ fn mistakes_are_one_clear_line() {
         .arg(&recorded));
     one_clear_line(&o, &["simulate"], "would be the same file");
     assert_eq!(std::fs::read(&recorded).unwrap(), b"{}");
+    // Values that were silently clamped or taken, and a scene file named that is not there
+    // (it was skipped without a word).
+    for (flag, value) in [
+        ("--size", "0"),
+        ("--size", "100000"),
+        ("--spp", "0"),
+        ("--columns", "0"),
+    ] {
+        let o = run(host()
+            .args(["gallery", "."])
+            .args([flag, value])
+            .arg("-o")
+            .arg(&png));
+        one_clear_line(
+            &o,
+            &["gallery", flag, value],
+            &format!("'{value}' for '{flag}"),
+        );
+    }
+    let o = run(host().args(["bench", "--cornell", "/no/such/cornell.gltf"]));
+    one_clear_line(&o, &["bench"], "/no/such/cornell.gltf: no such scene file");
     // Flags that cannot go together, of which one was silently ignored (`--topology tiny`
     // alone spawned the 86 processes of magg).
     expect_error(

@@ -314,14 +314,16 @@ struct GalleryArgs {
     dir: PathBuf,
     #[arg(short, long, default_value = "gallery.png")]
     output: PathBuf,
-    /// Side of each picture in pixels.
-    #[arg(long, default_value_t = 160)]
+    /// Side of each picture in pixels, 16 to 1024 (one outside was silently clamped).
+    #[arg(long, default_value_t = 160, value_parser = clap::value_parser!(u32).range(16..=1024))]
     size: u32,
-    #[arg(long, default_value_t = 16)]
+    /// Samples per pixel, 1 to 65536.
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: u32,
     #[arg(long, default_value = "path")]
     integrator: IntegratorKind,
-    #[arg(long, default_value_t = 7)]
+    /// Pictures a row, at least 1 (more than there are pictures make one row).
+    #[arg(long, default_value_t = 7, value_parser = clap::value_parser!(u32).range(1..))]
     columns: u32,
 }
 
@@ -444,15 +446,14 @@ struct BenchArgs {
     /// Triangles in the procedural mesh (at most 100 million).
     #[arg(long, default_value_t = 1_100_000, value_parser = triangles_to_bench)]
     triangles: usize,
-    /// The Cornell box scene, for samples per second.
-    #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
-    cornell: PathBuf,
-    /// A textured scene, rendered with and without its textures.
-    #[arg(
-        long,
-        default_value = "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb"
-    )]
-    textured: PathBuf,
+    /// The Cornell box scene, for samples per second [default: the repository's,
+    /// tests/data/scenes/cornell/cornell.gltf, skipped where it is not].
+    #[arg(long)]
+    cornell: Option<PathBuf>,
+    /// A textured scene, rendered with and without its textures [default: the repository's
+    /// DamagedHelmet, skipped where it is not].
+    #[arg(long)]
+    textured: Option<PathBuf>,
     /// Rays per measurement (at most 100 million).
     #[arg(long, default_value_t = 1_000_000, value_parser = rays_to_bench)]
     rays: usize,
@@ -1180,11 +1181,25 @@ fn bench(args: BenchArgs) -> Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    // A scene the user names must be there (one that was not was skipped without a word);
+    // the repository's own, the defaults, are skipped where the command runs elsewhere.
+    let scene = |given: Option<PathBuf>, default: &str| -> Result<PathBuf> {
+        match given {
+            Some(p) if !p.is_file() => anyhow::bail!("{}: no such scene file", p.display()),
+            Some(p) => Ok(p),
+            None => Ok(PathBuf::from(default)),
+        }
+    };
+    let cornell = scene(args.cornell, "tests/data/scenes/cornell/cornell.gltf")?;
+    let textured = scene(
+        args.textured,
+        "tests/data/scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb",
+    )?;
     let config = lab::bench::BenchConfig {
         mesh: args.mesh,
         triangles: args.triangles,
-        cornell: Some(args.cornell),
-        textured: Some(args.textured),
+        cornell: Some(cornell.clone()),
+        textured: Some(textured.clone()),
         rays: args.rays,
         threads,
         chunk_triangles: args.chunk_triangles,
@@ -1218,7 +1233,10 @@ fn bench(args: BenchArgs) -> Result<()> {
             r.cornell_threads,
             s
         ),
-        None => magg::put!("| Cornell box path tracing | skipped: scene file not found |"),
+        None => magg::put!(
+            "| Cornell box path tracing | skipped: no {} here (give --cornell) |",
+            cornell.display()
+        ),
     }
     if let (Some(t), Some(u)) = (
         r.textured_samples_per_second,
@@ -1230,6 +1248,11 @@ fn bench(args: BenchArgs) -> Result<()> {
             t,
             u,
             u / t
+        );
+    } else {
+        magg::put!(
+            "| textured scene | skipped: no {} here (give --textured) |",
+            textured.display()
         );
     }
     if let Some(p) = args.json {
@@ -1557,8 +1580,8 @@ fn main() {
             let c = lab::gallery::GalleryConfig {
                 dir: a.dir,
                 output: a.output.clone(),
-                size: a.size.clamp(16, 1024),
-                spp: a.spp.max(1),
+                size: a.size,
+                spp: a.spp,
                 integrator: a.integrator,
                 columns: a.columns,
                 threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
