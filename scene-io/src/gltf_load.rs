@@ -1546,7 +1546,12 @@ fn place_primitive(p: &PlacedPrimitive, shift: DVec3) -> (MeshData, usize) {
         triangles,
         material: p.material,
     };
-    if !mesh.positions.iter().all(|v| v.is_finite()) {
+    // Folded without stopping early, which lets the check of a million vertices run in
+    // vector registers (`all` cost 38 M instructions on the spheres' 1.04 M triangles).
+    let all_finite = mesh.positions.iter().fold(true, |ok, v| {
+        ok & v.x.is_finite() & v.y.is_finite() & v.z.is_finite()
+    });
+    if !all_finite {
         // Every triangle using a vertex at NaN or infinity was skipped above; the vertex
         // itself goes too, as a description with one is refused where it is checked (a
         // cluster's fork node). A mesh whose positions are all finite is left as it is.
