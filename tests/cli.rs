@@ -445,40 +445,22 @@ fn a_listen_address_that_cannot_be_writes_no_secret() {
             .args(["--listen", "127.0.0.1:0", "--topology", "grid:1x1x1", "-o"])
             .arg(dir.join("x.png")),
     );
-    let line = host
-        .wait_for("to join at ", std::time::Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("the host did not listen: {}", host.log()));
-    let addr = line
-        .rsplit("to join at ")
-        .next()
-        .unwrap()
-        .trim()
-        .to_string();
+    let addr = host.join_address();
     assert!(
         host.log()
             .contains("using the cluster secret in magg-secret"),
         "{}",
         host.log()
     );
-    let _nodes: Vec<Logged> = ["fork-node", "render-node"]
-        .into_iter()
-        .map(|role| {
-            Logged::start(
-                std::process::Command::new(env!("CARGO_BIN_EXE_magg-host"))
-                    .args([
-                        role,
-                        "--join",
-                        &addr,
-                        "--listen",
-                        "127.0.0.1:0",
-                        "--log",
-                        "warn",
-                    ])
-                    .arg("--secret-file")
-                    .arg(&secret),
-            )
-        })
-        .collect();
+    let _nodes = join_one_of_each(
+        &addr,
+        |args| {
+            let mut c = std::process::Command::new(args[0]);
+            c.args(&args[1..]);
+            c
+        },
+        |c| c.arg("--secret-file").arg(&secret),
+    );
     assert_eq!(
         host.wait_exit(std::time::Duration::from_secs(60)),
         Some(Some(0)),
@@ -900,18 +882,22 @@ fn a_closed_or_full_stderr_loses_no_image() {
             .unwrap()
     };
     for (name, cluster) in [("in-process", false), ("cluster", true)] {
+        let render = |out: &Path| {
+            let mut c = host();
+            c.env("MAGG_LOG", "info")
+                .args(["render", "--width", "16", "--height", "16", "--spp", "1"])
+                .args(if cluster {
+                    &["--spawn", "tiny"][..]
+                } else {
+                    &["--in-process"][..]
+                })
+                .arg("-o")
+                .arg(out);
+            c
+        };
         // Its reader gone before the first line: every write meets a broken pipe.
         let out = dir.join(format!("{name}-pipe.png"));
-        let mut child = host()
-            .env("MAGG_LOG", "info")
-            .args(["render", "--width", "16", "--height", "16", "--spp", "1"])
-            .args(if cluster {
-                &["--spawn", "tiny"][..]
-            } else {
-                &["--in-process"][..]
-            })
-            .arg("-o")
-            .arg(&out)
+        let mut child = render(&out)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap();
@@ -920,19 +906,7 @@ fn a_closed_or_full_stderr_loses_no_image() {
         assert!(status.success(), "{name}: {status}");
         assert!(out.exists(), "{name}: no image behind a closed stderr");
         let out = dir.join(format!("{name}-full.png"));
-        let status = host()
-            .env("MAGG_LOG", "info")
-            .args(["render", "--width", "16", "--height", "16", "--spp", "1"])
-            .args(if cluster {
-                &["--spawn", "tiny"][..]
-            } else {
-                &["--in-process"][..]
-            })
-            .arg("-o")
-            .arg(&out)
-            .stderr(full())
-            .status()
-            .unwrap();
+        let status = render(&out).stderr(full()).status().unwrap();
         assert!(status.success(), "{name}: {status}");
         assert!(
             out.exists(),

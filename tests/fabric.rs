@@ -336,26 +336,16 @@ fn nodes_run_under_valgrind() {
             .env("MAGG_LOG", "info")
             .env("MAGG_SECRET", SECRET),
     );
-    let line = host
-        .wait_for("to join at ", Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("the host did not listen: {}", host.log()));
-    let addr = line
-        .rsplit("to join at ")
-        .next()
-        .unwrap()
-        .trim()
-        .to_string();
-    let nodes: Vec<common::Logged> = ["fork-node", "render-node"]
-        .into_iter()
-        .map(|role| {
-            common::Logged::start(
-                Command::new("valgrind")
-                    .args(["--tool=none", "-q", env!("CARGO_BIN_EXE_magg-host"), role])
-                    .args(["--join", &addr, "--listen", "127.0.0.1:0", "--log", "warn"])
-                    .env("MAGG_SECRET", SECRET),
-            )
-        })
-        .collect();
+    let addr = host.join_address();
+    let nodes = common::join_one_of_each(
+        &addr,
+        |args| {
+            let mut c = Command::new("valgrind");
+            c.args(["--tool=none", "-q"]).args(args);
+            c
+        },
+        |c| c.env("MAGG_SECRET", SECRET),
+    );
     let code = host.wait_exit(Duration::from_secs(120));
     let logs: Vec<String> = nodes.iter().map(common::Logged::log).collect();
     assert_eq!(

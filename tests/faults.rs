@@ -77,15 +77,7 @@ fn start_cluster_on<S: AsRef<OsStr>>(
             .arg(&stats)
             .env("MAGG_SECRET", SECRET),
     );
-    let line = host
-        .wait_for("to join at ", Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("the host did not start listening: {}", host.log()));
-    let addr = line
-        .rsplit("to join at ")
-        .next()
-        .unwrap()
-        .trim()
-        .to_string();
+    let addr = host.join_address();
     let t = fabric::Topology::preset(topology).unwrap();
     let (forks, renders) = t.counts();
     let mut started = Vec::new();

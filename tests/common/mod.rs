@@ -112,6 +112,32 @@ pub fn in_process_to<S: AsRef<std::ffi::OsStr>>(out: &Path, args: &[S]) -> PathB
     out.to_path_buf()
 }
 
+/// A fork node and a render node (a `grid:1x1x1` cluster's two) joining the host at `addr`
+/// on loopback, each `magg-host ROLE` run by `command(role args)` (the binary itself, or it
+/// under a tool), with the secret `secret` gives to each.
+pub fn join_one_of_each(
+    addr: &str,
+    command: impl Fn(&[&str]) -> Command,
+    secret: impl Fn(&mut Command) -> &mut Command,
+) -> Vec<Logged> {
+    ["fork-node", "render-node"]
+        .into_iter()
+        .map(|role| {
+            let mut c = command(&[
+                env!("CARGO_BIN_EXE_magg-host"),
+                role,
+                "--join",
+                addr,
+                "--listen",
+                "127.0.0.1:0",
+                "--log",
+                "warn",
+            ]);
+            Logged::start(secret(&mut c))
+        })
+        .collect()
+}
+
 /// A process whose stderr is collected line by line as it runs.
 pub struct Logged {
     pub child: Child,
@@ -171,6 +197,19 @@ impl Logged {
             }
             std::thread::sleep(Duration::from_millis(20));
         }
+    }
+
+    /// Where a host started with `--listen` waits for its nodes (its "to join at" line),
+    /// waiting up to 30 s for it.
+    pub fn join_address(&self) -> String {
+        let line = self
+            .wait_for("to join at ", Duration::from_secs(30))
+            .unwrap_or_else(|| panic!("the host did not start listening: {}", self.log()));
+        line.rsplit("to join at ")
+            .next()
+            .unwrap()
+            .trim()
+            .to_string()
     }
 
     /// The exit code, waiting up to `limit`; `None` if it is still running then.
