@@ -98,63 +98,81 @@ def main():
         host_log = os.path.join(tmp, "host.log")
         cluster = os.path.join(tmp, "cluster.png")
         procs = []
-        with open(host_log, "w") as log:
-            host = under_callgrind(os.path.join(tmp, "host.cg"),
-                                   [a.host, "render", *view, "--topology", a.topology,
-                                    "--listen", "127.0.0.1:0", "--join-timeout", "600",
-                                    "-o", cluster], log)
-        procs.append(("host", host))
-        # "waiting for NAME: 1 host + F fork nodes + R render nodes = ... to join at ADDR"
-        line = wait_for(host_log, "to join at ", host, 300)
-        addr = line.rsplit("to join at ", 1)[1].strip()
-        m = re.search(r"(\d+) fork nodes? \+ (\d+) render nodes?", line)
-        if not m:
-            sys.exit(f"cannot tell the topology's nodes from: {line}")
-        forks, renders = int(m.group(1)), int(m.group(2))
-        for role, n in (("fork-node", forks), ("render-node", renders)):
-            for i in range(n):
-                name = f"{role}-{i + 1}"
-                with open(os.path.join(tmp, name + ".log"), "w") as log:
-                    procs.append((name, under_callgrind(
-                        os.path.join(tmp, name + ".cg"),
-                        [a.host, role, "--join", addr, "--listen", "127.0.0.1:0",
-                         "--log", "warn"], log)))
-        if host.wait(timeout=1800) != 0:
-            with open(host_log, errors="replace") as f:
-                sys.exit(f"the cluster render failed:\n{f.read()[-3000:]}")
-        for name, p in procs[1:]:
-            if p.wait(timeout=120) != 0:
-                sys.exit(f"{name} exited with {p.returncode}: see its log in {tmp}")
-        with open(one, "rb") as f1, open(cluster, "rb") as f2:
-            if f1.read() != f2.read():
-                sys.exit("the cluster's image differs from one process's")
+        try:
+            cluster_run(a, tmp, view, host_log, cluster, procs)
+        finally:
+            # On any way out, no process of the cluster is left running (the host waits
+            # ten minutes for nodes that may never come).
+            for _, p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+        report(a, tmp, procs, alone, one, cluster)
 
-        print(f"`{os.path.relpath(a.scene, ROOT)}` {a.width}x{a.height} at {a.spp} spp,"
-              f" topology {a.topology}; the same image bytes both ways")
-        print()
-        print("| process | thread | renders | instructions |")
-        print("|---|---:|---|---:|")
-        render_sum = other_sum = 0
-        for name, _ in procs:
-            for number, total, renders_ in threads(os.path.join(tmp, name + ".cg")):
-                print(f"| {name} | {number} | {'yes' if renders_ else ''} | {total:,} |")
-                if renders_:
-                    render_sum += total
-                else:
-                    other_sum += total
-        one_render = sum(t for _, t, r in alone if r)
-        one_other = sum(t for _, t, r in alone if not r)
-        for number, total, renders_ in alone:
-            print(f"| one process | {number} | {'yes' if renders_ else ''} | {total:,} |")
-        print()
-        print("| | cluster | one process | cluster / one process |")
-        print("|---|---:|---:|---:|")
-        print(f"| rendering threads | {render_sum:,} | {one_render:,} |"
-              f" {render_sum / one_render:.4f} |")
-        print(f"| everything else | {other_sum:,} | {one_other:,} |"
-              f" {other_sum / max(one_other, 1):.2f} |")
-        print(f"| all | {render_sum + other_sum:,} | {one_render + one_other:,} |"
-              f" {(render_sum + other_sum) / (one_render + one_other):.4f} |")
+
+def cluster_run(a, tmp, view, host_log, cluster, procs):
+    """Starts the host and its nodes under callgrind and waits for the render to end."""
+    with open(host_log, "w") as log:
+        host = under_callgrind(os.path.join(tmp, "host.cg"),
+                               [a.host, "render", *view, "--topology", a.topology,
+                                "--listen", "127.0.0.1:0", "--join-timeout", "600",
+                                "-o", cluster], log)
+    procs.append(("host", host))
+    # "waiting for NAME: 1 host + F fork nodes + R render nodes = ... to join at ADDR"
+    line = wait_for(host_log, "to join at ", host, 300)
+    addr = line.rsplit("to join at ", 1)[1].strip()
+    m = re.search(r"(\d+) fork nodes? \+ (\d+) render nodes?", line)
+    if not m:
+        sys.exit(f"cannot tell the topology's nodes from: {line}")
+    forks, renders = int(m.group(1)), int(m.group(2))
+    for role, n in (("fork-node", forks), ("render-node", renders)):
+        for i in range(n):
+            name = f"{role}-{i + 1}"
+            with open(os.path.join(tmp, name + ".log"), "w") as log:
+                procs.append((name, under_callgrind(
+                    os.path.join(tmp, name + ".cg"),
+                    [a.host, role, "--join", addr, "--listen", "127.0.0.1:0",
+                     "--log", "warn"], log)))
+    if host.wait(timeout=1800) != 0:
+        with open(host_log, errors="replace") as f:
+            sys.exit(f"the cluster render failed:\n{f.read()[-3000:]}")
+    for name, p in procs[1:]:
+        if p.wait(timeout=120) != 0:
+            sys.exit(f"{name} exited with {p.returncode}: see its log in {tmp}")
+
+
+def report(a, tmp, procs, alone, one, cluster):
+    """Prints each thread's count and the cluster's against one process's."""
+    with open(one, "rb") as f1, open(cluster, "rb") as f2:
+        if f1.read() != f2.read():
+            sys.exit("the cluster's image differs from one process's")
+
+    print(f"`{os.path.relpath(a.scene, ROOT)}` {a.width}x{a.height} at {a.spp} spp,"
+          f" topology {a.topology}; the same image bytes both ways")
+    print()
+    print("| process | thread | renders | instructions |")
+    print("|---|---:|---|---:|")
+    render_sum = other_sum = 0
+    for name, _ in procs:
+        for number, total, renders_ in threads(os.path.join(tmp, name + ".cg")):
+            print(f"| {name} | {number} | {'yes' if renders_ else ''} | {total:,} |")
+            if renders_:
+                render_sum += total
+            else:
+                other_sum += total
+    one_render = sum(t for _, t, r in alone if r)
+    one_other = sum(t for _, t, r in alone if not r)
+    for number, total, renders_ in alone:
+        print(f"| one process | {number} | {'yes' if renders_ else ''} | {total:,} |")
+    print()
+    print("| | cluster | one process | cluster / one process |")
+    print("|---|---:|---:|---:|")
+    print(f"| rendering threads | {render_sum:,} | {one_render:,} |"
+          f" {render_sum / one_render:.4f} |")
+    print(f"| everything else | {other_sum:,} | {one_other:,} |"
+          f" {other_sum / max(one_other, 1):.2f} |")
+    print(f"| all | {render_sum + other_sum:,} | {one_render + one_other:,} |"
+          f" {(render_sum + other_sum) / (one_render + one_other):.4f} |")
 
 
 

@@ -27,10 +27,12 @@ macro_rules! say {
     };
 }
 
-/// A line of results on stdout (tables, paths written), printed once the work it reports on
-/// is done and saved. A reader that stops early (`| head -1`, as scripts read the first
-/// line) ends the process quietly with success; another failure to write says so on stderr
-/// and exits with 1. `println!` would panic either way.
+/// A line of results on stdout (tables, paths written). Where stdout is gone the command
+/// goes on, writing its files (some print their tables before they write them): a reader
+/// that stops early (`| head -1`, as scripts read the first line) is no failure, and
+/// another failure to write is said once on stderr and makes the command's exit status 1
+/// ([`stdout_failed`]). `println!` panicked either way, and an exit at the first failed
+/// line lost the files written after it.
 #[macro_export]
 macro_rules! put {
     ($($arg:tt)*) => {
@@ -53,9 +55,18 @@ pub fn write_stderr(args: std::fmt::Arguments) {
     let _ = err.write_fmt(args).and_then(|()| err.write_all(b"\n"));
 }
 
+/// What became of stdout: written to so far, its reader gone, or another failure.
+static STDOUT: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(STDOUT_OK);
+const STDOUT_OK: u8 = 0;
+const STDOUT_CLOSED: u8 = 1;
+const STDOUT_FAILED: u8 = 2;
+
 #[doc(hidden)]
 pub fn write_stdout(args: std::fmt::Arguments, line: bool) {
-    use std::io::Write;
+    use std::{io::Write, sync::atomic::Ordering};
+    if STDOUT.load(Ordering::SeqCst) != STDOUT_OK {
+        return;
+    }
     let mut out = std::io::stdout().lock();
     let written = out
         .write_fmt(args)
@@ -63,14 +74,22 @@ pub fn write_stdout(args: std::fmt::Arguments, line: bool) {
         .and_then(|()| out.flush());
     match written {
         Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(0),
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => {
+            STDOUT.store(STDOUT_CLOSED, Ordering::SeqCst);
+        }
         Err(e) => {
+            STDOUT.store(STDOUT_FAILED, Ordering::SeqCst);
             write_stderr(format_args!(
                 "error: writing the results to standard output: {e}"
             ));
-            std::process::exit(1);
         }
     }
+}
+
+/// Whether a [`put!`] failed for another reason than its reader going away: the command,
+/// its work done, then exits with status 1.
+pub fn stdout_failed() -> bool {
+    STDOUT.load(std::sync::atomic::Ordering::SeqCst) == STDOUT_FAILED
 }
 
 /// Parses the command line; a mistake is one line on stderr and exit code 2 (help and
@@ -338,7 +357,7 @@ pub async fn stop_signal() -> &'static str {
         _ = term.recv() => ("SIGTERM", 15),
         _ = int.recv() => ("SIGINT", 2),
     };
-    STOPPED_BY.store(number, std::sync::atomic::Ordering::Relaxed);
+    STOPPED_BY.store(number, std::sync::atomic::Ordering::SeqCst);
     name
 }
 
@@ -349,7 +368,7 @@ static STOPPED_BY: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::
 /// process the signal ended (130 for Ctrl-C, 143 for SIGTERM, what `docker stop` and service
 /// managers send; it said 130 for both).
 pub fn stopped_exit_code() -> i32 {
-    match STOPPED_BY.load(std::sync::atomic::Ordering::Relaxed) {
+    match STOPPED_BY.load(std::sync::atomic::Ordering::SeqCst) {
         0 => 130,
         n => 128 + n,
     }

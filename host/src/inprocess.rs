@@ -135,9 +135,14 @@ fn check_no_file_twice(config: &RenderConfig) -> Result<(), RenderError> {
 }
 
 /// Whether two paths name one file: the same device and inode where both exist, else the
-/// same place once their folders are resolved (links, `..`).
+/// same place once links (to files not yet there too, where a write would land) and their
+/// folders are resolved.
 pub fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
     use std::os::unix::fs::MetadataExt;
+    let resolved = |p: &std::path::Path| {
+        scene_io::image_io::link_target(p).unwrap_or_else(|_| p.to_path_buf())
+    };
+    let (a, b) = (&resolved(a), &resolved(b));
     if let (Ok(ma), Ok(mb)) = (std::fs::metadata(a), std::fs::metadata(b)) {
         return (ma.dev(), ma.ino()) == (mb.dev(), mb.ino());
     }

@@ -254,9 +254,8 @@ mod tests {
         }
     }
 
-    /// More columns than pictures make a sheet as wide as the pictures (a million columns
-    /// wrapped the sheet's size and indexed past its buffer); a sheet too large to write is
-    /// refused with its size, not allocated.
+    /// A link back to the folder itself or to its parent lists each scene once (such links
+    /// listed scenes dozens of times, or never ended).
     #[test]
     fn folders_reached_again_through_links_are_walked_once() {
         let dir = std::env::temp_dir().join(format!("magg-gallery-loop-{}", std::process::id()));
@@ -275,6 +274,9 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// More columns than pictures make a sheet as wide as the pictures (a million columns
+    /// wrapped the sheet's size and indexed past its buffer); a sheet too large to write is
+    /// refused with its size, not allocated.
     #[test]
     fn columns_beyond_the_pictures_and_sheets_too_large_are_handled() {
         let dir = std::env::temp_dir().join(format!("magg-gallery-{}", std::process::id()));

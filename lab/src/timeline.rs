@@ -94,17 +94,29 @@ pub fn plot(stats: &Path, out_dir: Option<&Path>) -> Result<Plots, LabError> {
         timeline: dir.join(format!("{stem}.timeline.png")),
         tinted: dir.join(format!("{stem}.nodes.png")),
     };
-    // The image is named as the render saw it: relative to where it ran, or absolute. A
-    // relative name is looked for beside the stats file first (a render run in its folder
-    // writes both there; plotted from elsewhere, the name alone pointed into the wrong
-    // folder), then from here. Read before anything is drawn, so that a missing image
-    // leaves no half of the pictures behind.
+    // The image is named as the render saw it: relative to where it ran, or absolute. Where
+    // that name finds nothing from here, a relative one is looked for beside the stats file
+    // (a render run in its folder writes both there; plotted from the folder above, the name
+    // alone found nothing). Read before anything is drawn, so that a missing image leaves no
+    // half of the pictures behind.
     let recorded = Path::new(&records.output);
     let beside = match stats.parent() {
-        Some(d) if recorded.is_relative() => d.join(recorded),
+        Some(d) if recorded.is_relative() && !recorded.exists() => d.join(recorded),
         _ => recorded.to_path_buf(),
     };
-    let image = scene_io::read_image(if beside.exists() { &beside } else { recorded })?;
+    let image = scene_io::read_image(&beside).map_err(|e| match e {
+        scene_io::ImageError::Io { source, .. } if beside != recorded => scene_io::ImageError::Io {
+            path: format!(
+                "{} (the image {} names, looked for here and beside it as {})",
+                records.output,
+                stats.display(),
+                beside.display()
+            )
+            .into(),
+            source,
+        },
+        other => other,
+    })?;
     timeline_png(&plots.timeline, &records)?;
     tinted_png(&plots.tinted, &records, &image)?;
     Ok(plots)

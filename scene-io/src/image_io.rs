@@ -137,17 +137,16 @@ pub fn write_image(path: &Path, image: &Image) -> Result<(), ImageError> {
 
 /// Writes bytes to `path` via a temporary file in the same folder and a rename, so that a
 /// reader never sees half a file and a failure leaves the old one. What the rename would
-/// replace rather than write to is written the way the user meant: a symbolic link's
-/// target gets the new file (the link stays), and a device, a pipe or a socket (`--stats
-/// /dev/null`, a FIFO a script reads) is written directly (a rename replaced `/dev/null`
-/// itself with a regular file, for the whole machine where run as root).
+/// replace rather than write to is written the way the user meant: a device or a pipe
+/// (`--stats /dev/null`, `--stats /dev/stdout`, a FIFO a script reads) is written directly
+/// (a rename replaced `/dev/null` itself with a regular file, for the whole machine where
+/// run as root), and a symbolic link's target gets the new file (the link stays).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     let io = |source| ImageError::Io {
         path: path.into(),
         source,
     };
-    let target = link_target(path).map_err(io)?;
-    let path = target.as_path();
+    // Asked of the path as given: the kernel follows links, `/proc/self/fd` ones included.
     if let Ok(meta) = fs::metadata(path)
         && !meta.is_file()
         && !meta.is_dir()
@@ -158,6 +157,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
             .and_then(|mut f| f.write_all(bytes));
         return written.map_err(io);
     }
+    let target = link_target(path).map_err(io)?;
+    let path = target.as_path();
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -182,7 +183,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
 
 /// Where a write to `path` should land: `path` itself, or, for a symbolic link (a chain of
 /// them, even one that ends at a file not yet there), the path it finally names.
-fn link_target(path: &Path) -> std::io::Result<PathBuf> {
+pub fn link_target(path: &Path) -> std::io::Result<PathBuf> {
     let mut at = path.to_path_buf();
     // The kernel's own limit on links followed in one lookup.
     for _ in 0..40 {
@@ -432,15 +433,19 @@ mod tests {
 
         let fifo = dir.join("fifo");
         let made = std::process::Command::new("mkfifo").arg(&fifo).status();
-        if made.is_ok_and(|s| s.success()) {
-            let reader = {
-                let fifo = fifo.clone();
-                std::thread::spawn(move || fs::read(fifo).unwrap())
-            };
-            write_atomic(&fifo, b"to a reader").unwrap();
-            assert_eq!(reader.join().unwrap(), b"to a reader");
-            assert!(fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
+        assert!(made.is_ok_and(|s| s.success()), "mkfifo failed");
+        let (tx, rx) = std::sync::mpsc::channel();
+        {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || tx.send(fs::read(fifo).unwrap()));
         }
+        // Through a link too, as `/dev/stdout` reaches a pipe.
+        symlink("fifo", dir.join("to-fifo")).unwrap();
+        write_atomic(&dir.join("to-fifo"), b"to a reader").unwrap();
+        // A rename would leave the reader waiting: fail, not hang.
+        let read = rx.recv_timeout(std::time::Duration::from_secs(10));
+        assert_eq!(read.expect("the FIFO's reader got nothing"), b"to a reader");
+        assert!(fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
 
         write_atomic(Path::new("/dev/null"), b"nothing").unwrap();
         assert!(

@@ -247,21 +247,29 @@ impl ClusterArgs {
         let (secret, write_secret) = match self.secret.resolve()? {
             Some(s) => (s, None),
             None if listening && earlier.exists() => {
-                let from_file = magg::SecretArgs {
-                    secret: None,
-                    secret_file: Some(earlier.into()),
-                };
-                let s = from_file
-                    .resolve()
-                    .and_then(|s| s.context("no secret in it"))
+                let s = std::fs::read_to_string(earlier)
+                    .map_err(anyhow::Error::from)
+                    .and_then(|text| protocol::Secret::new(&text).map_err(anyhow::Error::msg))
                     .with_context(|| {
                         format!(
-                            "the cluster secret in {GENERATED_SECRET}, there from before \
+                            "the cluster secret in {GENERATED_SECRET}, left by an earlier run \
                              (remove the file to have a new one generated)"
                         )
                     })?;
+                // Generated, it is readable only by its owner; one that others can read
+                // (copied without its mode, or written by hand) gives the cluster away.
+                use std::os::unix::fs::PermissionsExt;
+                if let Ok(m) = std::fs::metadata(earlier)
+                    && m.permissions().mode() & 0o077 != 0
+                {
+                    tracing::warn!(
+                        "{GENERATED_SECRET} can be read by others than you (mode {:o}): \
+                         chmod 600 {GENERATED_SECRET}",
+                        m.permissions().mode() & 0o777
+                    );
+                }
                 tracing::info!(
-                    "using the cluster secret in {GENERATED_SECRET}, there from before: give nodes --secret-file {GENERATED_SECRET}"
+                    "using the cluster secret in {GENERATED_SECRET}, left by an earlier run: give nodes --secret-file {GENERATED_SECRET}"
                 );
                 (s, None)
             }
@@ -710,17 +718,25 @@ struct SimulateArgs {
 }
 
 /// Refuses a command whose outputs would overwrite one of its inputs or each other (`simulate
-/// stats.json --json stats.json` replaced the recorded render with the prediction): the
-/// files it reads and writes, by what each one is.
-fn refuse_same_files(files: &[(&str, Option<&std::path::Path>)]) -> Result<()> {
-    let named: Vec<(&str, &std::path::Path)> = files
-        .iter()
-        .filter_map(|(w, p)| Some((*w, (*p)?)))
-        .collect();
-    for (i, (what, a)) in named.iter().enumerate() {
-        for (other, b) in &named[..i] {
-            if host::inprocess::same_file(a, b) {
-                anyhow::bail!("{}: {other} and {what} would be the same file", a.display());
+/// stats.json --json stats.json` replaced the recorded render with the prediction). Inputs
+/// may be one file (`--overheads-from` the recorded render itself is a use).
+fn refuse_same_files(
+    inputs: &[(&str, Option<&std::path::Path>)],
+    outputs: &[(&str, Option<&std::path::Path>)],
+) -> Result<()> {
+    fn given<'a>(
+        l: &[(&'a str, Option<&'a std::path::Path>)],
+    ) -> Vec<(&'a str, &'a std::path::Path)> {
+        l.iter().filter_map(|(w, p)| Some((*w, (*p)?))).collect()
+    }
+    let (inputs, outputs) = (given(inputs), given(outputs));
+    for (i, (what, out)) in outputs.iter().enumerate() {
+        for (other, b) in inputs.iter().chain(&outputs[..i]) {
+            if host::inprocess::same_file(out, b) {
+                anyhow::bail!(
+                    "{}: {other} and {what} would be the same file",
+                    out.display()
+                );
             }
         }
     }
@@ -728,11 +744,13 @@ fn refuse_same_files(files: &[(&str, Option<&std::path::Path>)]) -> Result<()> {
 }
 
 fn simulate(a: SimulateArgs) -> Result<()> {
-    refuse_same_files(&[
-        ("the recorded statistics", Some(&a.stats)),
-        ("--overheads-from", a.overheads_from.as_deref()),
-        ("the prediction (--json)", a.json.as_deref()),
-    ])?;
+    refuse_same_files(
+        &[
+            ("the recorded statistics", Some(&a.stats)),
+            ("--overheads-from", a.overheads_from.as_deref()),
+        ],
+        &[("the prediction (--json)", a.json.as_deref())],
+    )?;
     let text = std::fs::read_to_string(&a.stats)
         .with_context(|| format!("reading {}", a.stats.display()))?;
     let overrides = lab::simulate::Overrides {
@@ -1049,12 +1067,13 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 fn bench_rays(a: RaysArgs) -> Result<()> {
-    refuse_same_files(&[
-        ("the mesh", Some(&a.mesh)),
-        ("the rays", Some(&a.rays)),
-        ("the hits (--hits)", a.hits.as_deref()),
-        ("the figures (--json)", a.json.as_deref()),
-    ])?;
+    refuse_same_files(
+        &[("the mesh", Some(&a.mesh)), ("the rays", Some(&a.rays))],
+        &[
+            ("the hits (--hits)", a.hits.as_deref()),
+            ("the figures (--json)", a.json.as_deref()),
+        ],
+    )?;
     let cfg = lab::raybench::RaysConfig {
         mesh: a.mesh,
         rays: a.rays,
@@ -1652,6 +1671,9 @@ fn main() {
     };
     if let Err(e) = result {
         magg::say!("error: {}", magg::report(&e));
+        std::process::exit(1);
+    }
+    if magg::stdout_failed() {
         std::process::exit(1);
     }
 }

@@ -43,7 +43,11 @@ impl Fabric {
     /// Accepts connections forever: handshake, check the caller's claim, attach.
     pub(crate) fn serve(&self, listener: TcpListener) {
         let me = self.clone();
-        let allowed = pending_handshakes_allowed(self.inner.topology.len());
+        // Only the host hears from every node at once; a node hears from its neighbours.
+        let allowed = match self.inner.role {
+            protocol::Role::Host => pending_handshakes_allowed(self.inner.topology.len()),
+            _ => super::MAX_PENDING_HANDSHAKES,
+        };
         let pending = Arc::new(tokio::sync::Semaphore::new(allowed));
         tokio::spawn(async move {
             loop {

@@ -61,7 +61,7 @@ pub const FLAG_REPLY: u8 = 4;
 /// many nodes; a larger one allows one per node (see [`pending_handshakes_allowed`]).
 pub const MAX_PENDING_HANDSHAKES: usize = 256;
 
-/// How many connections may be in the handshake at once in a cluster of `nodes` nodes. At
+/// How many connections may be in the host's handshake at once in a cluster of `nodes` nodes. At
 /// formation every node calls the host at about the same time: `magg1000`'s 1051 processes,
 /// spawned on a loaded 2-core machine, had more than 256 handshakes waiting there, and the
 /// host closed the rest, which ended the render ("a spawned render node exited before the
