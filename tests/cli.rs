@@ -697,19 +697,15 @@ fn simulate_predicts_a_recorded_render_and_another_machine() {
     // the same (an exit at the first line the closed stdout refused lost it, with status 0);
     // the recorded render may give its own overheads.
     let again = dir.join("prediction-again.json");
-    let mut child = host()
-        .arg("simulate")
-        .arg(&file)
-        .arg("--overheads-from")
-        .arg(&file)
-        .arg("--json")
-        .arg(&again)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    drop(child.stdout.take());
-    let o = child.wait_with_output().unwrap();
+    let o = into_closed_stdout(
+        host()
+            .arg("simulate")
+            .arg(&file)
+            .arg("--overheads-from")
+            .arg(&file)
+            .arg("--json")
+            .arg(&again),
+    );
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(again.is_file(), "no prediction behind a closed stdout");
     // The same costs on the 1000-node machine, 2000 subscreens: no measurement to compare.
@@ -875,18 +871,21 @@ fn compare_into_a_closed_pipe_is_no_error() {
         &dir.join("a.pfm"),
         &["--width", "16", "--height", "16", "--spp", "1"],
     );
-    let mut child = host()
-        .arg("compare")
-        .arg(&image)
-        .arg(&image)
+    let o = into_closed_stdout(host().arg("compare").arg(&image).arg(&image));
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+}
+
+/// Runs `cmd` with its stdout a pipe whose reader is gone before the first line
+/// (`| head -0`).
+fn into_closed_stdout(cmd: &mut std::process::Command) -> std::process::Output {
+    let mut child = cmd
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     drop(child.stdout.take());
-    let o = child.wait_with_output().unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
-    assert!(!stderr(&o).contains("panicked"), "{}", stderr(&o));
+    child.wait_with_output().unwrap()
 }
 
 /// `magg-host render ... 2>&1 | head -1`, or stderr on a full disk: the log and the last
