@@ -108,26 +108,54 @@ pub fn check_settings(config: &RenderConfig) -> Result<(), RenderError> {
 /// --stats a.png` wrote the image and then the statistics over it (saying it wrote the
 /// image), and `--stats scene.gltf` replaced the scene.
 fn check_no_file_twice(config: &RenderConfig) -> Result<(), RenderError> {
-    let mut files: Vec<(&str, PathBuf)> = vec![
-        ("the image (-o)", config.output.clone()),
+    let checkpoint = checkpoint::path_for(&config.output);
+    let scene = match &config.scene {
+        SceneSource::File(p) => Some(p.as_path()),
+        SceneSource::Demo => None,
+    };
+    refuse_same_files(&[
+        ("the image (-o)", Some(&config.output), FileUse::Written),
         (
             "the image's checkpoint",
-            checkpoint::path_for(&config.output),
+            Some(&checkpoint),
+            FileUse::Written,
         ),
-    ];
-    if let Some(p) = &config.stats {
-        files.push(("the statistics (--stats)", p.clone()));
-    }
-    if let SceneSource::File(p) = &config.scene {
-        files.push(("the scene", p.clone()));
-    }
-    for (i, (what, a)) in files.iter().enumerate() {
-        for (other, b) in &files[..i] {
-            if same_file(a, b) {
-                return Err(RenderError::Settings(format!(
+        (
+            "the statistics (--stats)",
+            config.stats.as_deref(),
+            FileUse::Written,
+        ),
+        ("the scene", scene, FileUse::Read),
+    ])
+    .map_err(RenderError::Settings)
+}
+
+/// Whether a command reads a file it names or writes it.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub enum FileUse {
+    Read,
+    Written,
+}
+
+/// Refuses a command whose files, named (what, path, use) in the order it lists them, would
+/// have it write one file twice or over one it reads; files it only reads may be one file
+/// (`simulate --overheads-from` the recorded render itself). The error names the later of
+/// the two and both uses.
+pub fn refuse_same_files(
+    files: &[(&str, Option<&std::path::Path>, FileUse)],
+) -> Result<(), String> {
+    let named: Vec<_> = files
+        .iter()
+        .filter_map(|&(what, p, u)| Some((what, p?, u)))
+        .collect();
+    for (i, &(what, a, use_a)) in named.iter().enumerate() {
+        for &(other, b, use_b) in &named[..i] {
+            let writes = use_a == FileUse::Written || use_b == FileUse::Written;
+            if writes && same_file(a, b) {
+                return Err(format!(
                     "{}: {other} and {what} would be the same file",
                     a.display()
-                )));
+                ));
             }
         }
     }

@@ -717,40 +717,14 @@ struct SimulateArgs {
     json: Option<PathBuf>,
 }
 
-/// Refuses a command whose outputs would overwrite one of its inputs or each other (`simulate
-/// stats.json --json stats.json` replaced the recorded render with the prediction). Inputs
-/// may be one file (`--overheads-from` the recorded render itself is a use).
-fn refuse_same_files(
-    inputs: &[(&str, Option<&std::path::Path>)],
-    outputs: &[(&str, Option<&std::path::Path>)],
-) -> Result<()> {
-    fn given<'a>(
-        l: &[(&'a str, Option<&'a std::path::Path>)],
-    ) -> Vec<(&'a str, &'a std::path::Path)> {
-        l.iter().filter_map(|(w, p)| Some((*w, (*p)?))).collect()
-    }
-    let (inputs, outputs) = (given(inputs), given(outputs));
-    for (i, (what, out)) in outputs.iter().enumerate() {
-        for (other, b) in inputs.iter().chain(&outputs[..i]) {
-            if host::inprocess::same_file(out, b) {
-                anyhow::bail!(
-                    "{}: {other} and {what} would be the same file",
-                    out.display()
-                );
-            }
-        }
-    }
-    Ok(())
-}
-
 fn simulate(a: SimulateArgs) -> Result<()> {
-    refuse_same_files(
-        &[
-            ("the recorded statistics", Some(&a.stats)),
-            ("--overheads-from", a.overheads_from.as_deref()),
-        ],
-        &[("the prediction (--json)", a.json.as_deref())],
-    )?;
+    use host::inprocess::{FileUse::*, refuse_same_files};
+    refuse_same_files(&[
+        ("the recorded statistics", Some(&a.stats), Read),
+        ("--overheads-from", a.overheads_from.as_deref(), Read),
+        ("the prediction (--json)", a.json.as_deref(), Written),
+    ])
+    .map_err(anyhow::Error::msg)?;
     let text = std::fs::read_to_string(&a.stats)
         .with_context(|| format!("reading {}", a.stats.display()))?;
     let overrides = lab::simulate::Overrides {
@@ -1067,13 +1041,14 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 fn bench_rays(a: RaysArgs) -> Result<()> {
-    refuse_same_files(
-        &[("the mesh", Some(&a.mesh)), ("the rays", Some(&a.rays))],
-        &[
-            ("the hits (--hits)", a.hits.as_deref()),
-            ("the figures (--json)", a.json.as_deref()),
-        ],
-    )?;
+    use host::inprocess::{FileUse::*, refuse_same_files};
+    refuse_same_files(&[
+        ("the mesh", Some(&a.mesh), Read),
+        ("the rays", Some(&a.rays), Read),
+        ("the hits (--hits)", a.hits.as_deref(), Written),
+        ("the figures (--json)", a.json.as_deref(), Written),
+    ])
+    .map_err(anyhow::Error::msg)?;
     let cfg = lab::raybench::RaysConfig {
         mesh: a.mesh,
         rays: a.rays,
