@@ -14,6 +14,7 @@
 //! demands.
 
 use std::{
+    cell::RefCell,
     collections::{BTreeSet, HashMap},
     path::{Path, PathBuf},
 };
@@ -48,8 +49,8 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
 /// Largest image accepted, in pixels per side, so a hostile file cannot ask for gigabytes.
 const MAX_IMAGE_SIDE: u32 = 16384;
 
-/// Most bytes an accessor without a bufferView (zeros but for its sparse part) may stand
-/// for, where the file's buffers hold less: see [`check_accessor`].
+/// Most bytes the accessors without a bufferView (zeros but for their sparse parts) may stand
+/// for together, where the file's buffers hold less: see [`check_accessor`].
 const MAX_UNBACKED_BYTES: usize = 16 << 20;
 
 #[derive(Debug, thiserror::Error)]
@@ -81,6 +82,9 @@ struct Ctx<'a> {
     dir: PathBuf,
     warnings: Vec<String>,
     unsupported: BTreeSet<String>,
+    /// Accessors without a bufferView already admitted, and the bytes they stand for
+    /// together: their bound is the file's, not each one's (see [`check_accessor`]).
+    unbacked: RefCell<(BTreeSet<usize>, usize)>,
 }
 
 impl Ctx<'_> {
@@ -137,6 +141,7 @@ pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
         dir: path.parent().map(Path::to_path_buf).unwrap_or_default(),
         warnings: Vec::new(),
         unsupported: BTreeSet::new(),
+        unbacked: RefCell::default(),
     };
     for ext in doc.extensions_used() {
         if !SUPPORTED_EXTENSIONS.contains(&ext) {
@@ -965,17 +970,39 @@ fn check_accessor(ctx: &Ctx, acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Resul
     if acc.view().is_none() {
         // Without a bufferView every element is zero but the few a sparse part lists, so
         // `count` is bounded by nothing in the file, and reading the accessor allocates for
-        // all of them. Such an accessor may stand for no more data than the file's buffers
-        // hold (as one with a bufferView cannot), or than a floor that small files stay under.
+        // all of them. All such accessors together may stand for no more data than the file's
+        // buffers hold (as ones with a bufferView cannot), or than a floor that small files
+        // stay under: a bound per accessor let a file of many small accessors ask for 16 MiB
+        // each. An accessor read again (a mesh under many nodes) counts once, as one with
+        // a bufferView does.
         let held: usize = buffers.iter().map(Vec::len).sum();
         let limit = held.max(MAX_UNBACKED_BYTES);
-        if count.checked_mul(elem).is_none_or(|bytes| bytes > limit) {
-            return Err(ctx.invalid(format!(
-                "{} has no bufferView and count {count} ({elem} bytes each): more data than \
-                 the file's buffers hold ({held} bytes) or {} MiB",
-                what(),
-                MAX_UNBACKED_BYTES >> 20
-            )));
+        let mut unbacked = ctx.unbacked.borrow_mut();
+        let (admitted, total) = &mut *unbacked;
+        if !admitted.contains(&acc.index()) {
+            let others = *total;
+            match count
+                .checked_mul(elem)
+                .and_then(|bytes| bytes.checked_add(others))
+            {
+                Some(sum) if sum <= limit => {
+                    admitted.insert(acc.index());
+                    *total = sum;
+                }
+                _ => {
+                    let besides = if others > 0 {
+                        format!(" (besides the {others} bytes of the file's other such accessors)")
+                    } else {
+                        String::new()
+                    };
+                    return Err(ctx.invalid(format!(
+                        "{} has no bufferView and count {count} ({elem} bytes each){besides}: \
+                         more data than the file's buffers hold ({held} bytes) or {} MiB",
+                        what(),
+                        MAX_UNBACKED_BYTES >> 20
+                    )));
+                }
+            }
         }
     }
     let check_range = |view: &gltf::buffer::View,
@@ -1803,6 +1830,50 @@ mod tests {
             assert_eq!((t.width, t.height), (2, 1));
             assert_eq!(t.rgba, [255, 0, 0, 255, 0, 255, 0, 255]);
         }
+    }
+
+    /// Accessors without a bufferView (zeros but for a sparse part) are bounded together,
+    /// not each on its own: a file of many such accessors, each under the bound, asked for
+    /// 16 MiB apiece. One such accessor read by several primitives counts once.
+    #[test]
+    fn accessors_without_data_are_bounded_together() {
+        let scene = |primitives: &[usize], accessors: usize| {
+            let primitives: Vec<String> = primitives
+                .iter()
+                .map(|a| format!(r#"{{"attributes":{{"POSITION":{a}}}}}"#))
+                .collect();
+            // 1,000,002 positions of 12 bytes: 12 MB, under the 16 MiB floor alone; the
+            // sparse part sets the first to zero too (4 bytes of index, 12 of value).
+            let accessor = r#"{"componentType":5126,"count":1000002,"type":"VEC3",
+                "min":[0,0,0],"max":[0,0,0],"sparse":{"count":1,
+                "indices":{"bufferView":0,"componentType":5125},"values":{"bufferView":1}}}"#;
+            format!(
+                r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+                "nodes":[{{"mesh":0}}],"meshes":[{{"primitives":[{}]}}],"accessors":[{}],
+                "buffers":[{{"byteLength":16,"uri":"{}"}}],
+                "bufferViews":[{{"buffer":0,"byteLength":4}},
+                               {{"buffer":0,"byteOffset":4,"byteLength":12}}]}}"#,
+                primitives.join(","),
+                vec![accessor; accessors].join(","),
+                data_uri(&[0; 16])
+            )
+        };
+        let p = Path::new("unbacked.gltf");
+        // One accessor, read by two primitives: within the bound (its triangles are all
+        // degenerate, so the file has nothing to render, which is another message).
+        let once = load_gltf_bytes(p, scene(&[0, 0], 1).as_bytes());
+        if let Err(e) = &once {
+            assert!(!e.to_string().contains("no bufferView"), "{e}");
+        }
+        let twice = load_gltf_bytes(p, scene(&[0, 1], 2).as_bytes())
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            twice.contains("accessor 1 has no bufferView")
+                && twice.contains("besides the 12000024 bytes"),
+            "{twice}"
+        );
     }
 
     #[test]
