@@ -111,3 +111,62 @@ fn every_khronos_scene_renders_finite_with_both_integrators() {
         }
     }
 }
+
+/// One image under two samplers' settings (BoxTextured's logo as base colour, linear and
+/// repeating, and again as emission, nearest and clamped) is held once and sampled both
+/// ways: the image is the same bytes as with the image given twice (two images of one
+/// file, each holding its texels, as every texture did before), in one process and on a
+/// cluster, whose render nodes fetch the shared tiles by demand.
+#[test]
+fn one_image_under_two_samplers_renders_as_two_copies_do() {
+    let dir = scratch("shared-texels");
+    let src = data().join("scenes/khronos/BoxTextured/glTF");
+    for f in ["BoxTextured0.bin", "CesiumLogoFlat.png"] {
+        std::fs::copy(src.join(f), dir.join(f)).unwrap();
+    }
+    let text = std::fs::read_to_string(src.join("BoxTextured.gltf")).unwrap();
+    let mut shared: serde_json::Value = serde_json::from_str(&text).unwrap();
+    shared["samplers"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"magFilter": 9728, "wrapS": 33071, "wrapT": 33071}));
+    shared["textures"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"sampler": 1, "source": 0}));
+    let material = &mut shared["materials"][0];
+    material["emissiveTexture"] = serde_json::json!({"index": 1});
+    material["emissiveFactor"] = serde_json::json!([0.5, 0.5, 0.5]);
+    let mut copies = shared.clone();
+    copies["images"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"uri": "CesiumLogoFlat.png"}));
+    copies["textures"][1]["source"] = serde_json::json!(1);
+    let write = |name: &str, v: &serde_json::Value| {
+        let p = dir.join(name);
+        std::fs::write(&p, serde_json::to_string(v).unwrap()).unwrap();
+        p
+    };
+    let shared = write("shared.gltf", &shared);
+    let copies = write("copies.gltf", &copies);
+    let flags = ["--width", "48", "--height", "48", "--spp", "4"];
+    let render = |scene: &std::path::Path, out: &str| {
+        let args: Vec<&std::ffi::OsStr> = std::iter::once(scene.as_os_str())
+            .chain(flags.iter().map(std::ffi::OsStr::new))
+            .collect();
+        in_process_to(&dir.join(out), &args)
+    };
+    let one = render(&shared, "shared.png");
+    same_bytes(&one, &render(&copies, "copies.png"));
+
+    let cluster = dir.join("cluster.png");
+    let o = run(host()
+        .args(["render", "--quiet", "--spawn", "tiny", "--cache", "50"])
+        .args(flags)
+        .arg(&shared)
+        .arg("-o")
+        .arg(&cluster));
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_bytes(&one, &cluster);
+}

@@ -205,8 +205,7 @@ pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64)
     textured.environment = Some(renderer::light::Environment::sky());
     let mut plain = textured.clone();
     let mean = |t: u32| -> glam::Vec4 {
-        let tex = &textured.textures[t as usize];
-        let (_, srgb) = renderer::texture::averages(&tex.rgba);
+        let (_, srgb) = renderer::texture::averages(textured.texels(t as usize));
         glam::Vec4::from(srgb)
     };
     for m in &mut plain.materials {
@@ -217,7 +216,7 @@ pub fn texture_cost(path: &std::path::Path, threads: usize) -> Result<(f64, f64)
             m.emissive *= mean(t.texture).truncate();
         }
         if let Some(t) = m.metallic_roughness_tex.take() {
-            let (lin, _) = renderer::texture::averages(&textured.textures[t.texture as usize].rgba);
+            let (lin, _) = renderer::texture::averages(textured.texels(t.texture as usize));
             m.roughness *= lin[1];
             m.metallic *= lin[2];
         }

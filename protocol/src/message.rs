@@ -616,6 +616,7 @@ mod tests {
             wrap_s: Wrap,
             wrap_t: Wrap,
             filter: Filter,
+            texels_of: Option<u32>,
         }
         let rgba: Vec<u8> = (0..300u32).map(|i| (i * 7) as u8).collect();
         let t = TextureDesc {
@@ -626,6 +627,7 @@ mod tests {
             wrap_s: Wrap::default(),
             wrap_t: Wrap::default(),
             filter: Filter::default(),
+            texels_of: Some(3),
         };
         let plain = Plain {
             name: "t".into(),
@@ -635,6 +637,7 @@ mod tests {
             wrap_s: Wrap::default(),
             wrap_t: Wrap::default(),
             filter: Filter::default(),
+            texels_of: Some(3),
         };
         let bytes = encode_value(&t);
         assert_eq!(bytes, encode_value(&plain));

@@ -98,6 +98,7 @@ fn checker(size: u32) -> TextureDesc {
         wrap_s: Wrap::Repeat,
         wrap_t: Wrap::Repeat,
         filter: Filter::Linear,
+        texels_of: None,
     }
 }
 

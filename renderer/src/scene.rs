@@ -33,11 +33,17 @@ pub struct TextureDesc {
     /// As one byte string: the same bytes on the wire as a sequence of `u8`, but written
     /// and hashed in one piece instead of a call per byte (a quarter of a textured scene's
     /// load time went there).
+    /// Empty where `texels_of` names another texture.
     #[serde(with = "pod_vec")]
     pub rgba: Vec<u8>,
     pub wrap_s: Wrap,
     pub wrap_t: Wrap,
     pub filter: Filter,
+    /// An earlier texture whose texels (and, once prepared, tiles) this one samples with
+    /// its own wrap and filter: one image under several samplers' settings is held once,
+    /// where a copy for each let a small file ask for gigabytes. Use
+    /// [`SceneDesc::texels`] to read a texture's texels either way.
+    pub texels_of: Option<u32>,
 }
 
 /// A scene as loaders build it, in world space.
@@ -57,6 +63,16 @@ pub struct SceneDesc {
 }
 
 impl SceneDesc {
+    /// Texture `i`'s texels, RGBA8 row by row, its own or those it shares
+    /// ([`TextureDesc::texels_of`]).
+    pub fn texels(&self, i: usize) -> &[u8] {
+        let t = &self.textures[i];
+        match t.texels_of {
+            Some(of) => &self.textures[of as usize].rgba,
+            None => &t.rgba,
+        }
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.meshes.iter().map(|m| m.triangles.len()).sum()
     }
@@ -95,6 +111,21 @@ impl SceneDesc {
             }
         }
         for (i, t) in self.textures.iter().enumerate() {
+            if let Some(of) = t.texels_of {
+                let same = match self.textures.get(of as usize) {
+                    Some(o) if (of as usize) < i && o.texels_of.is_none() => {
+                        (o.width, o.height) == (t.width, t.height) && t.rgba.is_empty()
+                    }
+                    _ => false,
+                };
+                if !same {
+                    return bad(format!(
+                        "texture {i}: its texels are texture {of}'s, which is not an earlier \
+                         texture of its size holding its own"
+                    ));
+                }
+                continue;
+            }
             if t.width == 0
                 || t.height == 0
                 || t.rgba.len() as u64 != t.width as u64 * t.height as u64 * 4
@@ -373,13 +404,20 @@ impl SceneHeader {
             }
         }
         let mut tiles = 0u64;
+        let mut made = std::collections::HashSet::new();
         for (i, t) in self.textures.iter().enumerate() {
             if t.width == 0 || t.height == 0 || t.width > 1 << 16 || t.height > 1 << 16 {
                 return bad(format!("texture {i} is {}x{}", t.width, t.height));
             }
+            // A texture's tiles follow the textures' before it, or are an earlier one's of
+            // the same size (one image under several samplers' settings).
+            if !made.insert((t.first_tile, t.width, t.height)) {
+                continue;
+            }
             if t.first_tile as u64 != tiles {
                 return bad(format!(
-                    "texture {i} starts at tile {}, expected {tiles}",
+                    "texture {i} starts at tile {}, expected {tiles} or an earlier texture's \
+                     of its size",
                     t.first_tile
                 ));
             }
@@ -788,19 +826,31 @@ fn prepare_as(
     let mut tiles = Vec::new();
     let mut textures = Vec::new();
     for t in &desc.textures {
-        let (avg_lin, avg_srgb) = texture::averages(&t.rgba);
-        textures.push(TextureInfo {
+        let info = |first_tile: u32, average_linear, average_srgb| TextureInfo {
             name: t.name.clone(),
             width: t.width,
             height: t.height,
             wrap_s: t.wrap_s,
             wrap_t: t.wrap_t,
             filter: t.filter,
-            first_tile: tiles.len() as u32,
-            average_linear: avg_lin,
-            average_srgb: avg_srgb,
-        });
-        tiles.extend(texture::make_tiles(t.width, t.height, &t.rgba));
+            first_tile,
+            average_linear,
+            average_srgb,
+        };
+        let made = match t.texels_of {
+            // Validated: an earlier texture of the same size, already made.
+            Some(of) => {
+                let o: &TextureInfo = &textures[of as usize];
+                info(o.first_tile, o.average_linear, o.average_srgb)
+            }
+            None => {
+                let (avg_lin, avg_srgb) = texture::averages(&t.rgba);
+                let first_tile = tiles.len() as u32;
+                tiles.extend(texture::make_tiles(t.width, t.height, &t.rgba));
+                info(first_tile, avg_lin, avg_srgb)
+            }
+        };
+        textures.push(made);
     }
 
     // Emissive triangles become lights, in chunk order.
@@ -1167,5 +1217,50 @@ mod tests {
         }
         let e = header.validate().unwrap_err().to_string();
         assert!(e.contains("disagrees with its corners"), "{e}");
+    }
+
+    /// A texture may sample an earlier texture's texels (one image under two samplers'
+    /// settings): prepared, both name the same tiles, and a header from elsewhere may do so
+    /// only for an earlier texture of the same size; a description only for an earlier one
+    /// of its size that holds texels of its own.
+    #[test]
+    fn a_texture_may_share_an_earlier_ones_texels_and_tiles() {
+        let opts = PrepareOptions {
+            chunk_triangles: 4096,
+        };
+        let mut desc = crate::demo::demo_scene();
+        let first = desc.textures[0].clone();
+        desc.textures.push(TextureDesc {
+            rgba: Vec::new(),
+            filter: Filter::Nearest,
+            texels_of: Some(0),
+            ..first.clone()
+        });
+        desc.validate().expect("an earlier texture's texels");
+        assert_eq!(desc.texels(1), &first.rgba[..]);
+        let (header, _) = crate::prepare(desc.clone(), &opts);
+        header.validate().expect("a prepared header is valid");
+        let (a, b) = (&header.textures[0], &header.textures[1]);
+        assert_eq!((a.first_tile, b.first_tile), (0, 0));
+        assert_eq!(header.tile_count, a.tile_count(), "tiles made once");
+        assert_eq!(b.filter, Filter::Nearest);
+
+        let mut other_size = header.clone();
+        other_size.textures[1].width -= 1;
+        let e = other_size.validate().unwrap_err().to_string();
+        assert!(e.contains("texture 1 starts at tile 0"), "{e}");
+
+        for (what, change) in [("a later texture", 5u32), ("itself", 1)] {
+            let mut bad = desc.clone();
+            bad.textures[1].texels_of = Some(change);
+            let e = bad.validate().unwrap_err().to_string();
+            assert!(e.contains("not an earlier texture"), "{what}: {e}");
+        }
+        let mut own_too = desc.clone();
+        own_too.textures[1].rgba = first.rgba.clone();
+        assert!(
+            own_too.validate().is_err(),
+            "texels both its own and shared"
+        );
     }
 }

@@ -537,8 +537,9 @@ fn load_textures(
         }
     }
     // Textures alike (one image, one sampler's settings) become one texture, which the
-    // materials naming any of them share: a file may name one image in many textures, and
-    // each texture holds its texels (and becomes tiles) on its own.
+    // materials naming any of them share: a file may name one image in many textures.
+    // Under other settings an image makes another texture, which shares the first's
+    // texels and tiles (`texels_of`).
     let mut alike: HashMap<(usize, [u8; 3]), u32> = HashMap::new();
     let mut kept: Vec<(usize, String, Wrap, Wrap, Filter)> = Vec::new();
     let mut map = Vec::new();
@@ -570,20 +571,23 @@ fn load_textures(
         });
         map.push(Some(index));
     }
-    // Each image's texels are copied only for a texture other than its last: the last
-    // takes them.
-    let mut last_use = vec![usize::MAX; images.len()];
-    for (i, k) in kept.iter().enumerate() {
-        last_use[k.0] = i;
-    }
+    // An image's first texture holds its texels; the others sample them.
+    let mut holder: Vec<Option<u32>> = vec![None; images.len()];
     let mut textures = Vec::with_capacity(kept.len());
     for (i, (source, name, wrap_s, wrap_t, filter)) in kept.into_iter().enumerate() {
-        let (width, height, rgba) = if last_use[source] == i {
-            images[source].take()
-        } else {
-            images[source].clone()
-        }
-        .expect("kept textures name decoded images");
+        let (width, height, rgba, texels_of) = match holder[source] {
+            Some(of) => {
+                let o: &TextureDesc = &textures[of as usize];
+                (o.width, o.height, Vec::new(), Some(of))
+            }
+            None => {
+                holder[source] = Some(i as u32);
+                let (w, h, rgba) = images[source]
+                    .take()
+                    .expect("kept textures name decoded images");
+                (w, h, rgba, None)
+            }
+        };
         textures.push(TextureDesc {
             name,
             width,
@@ -592,6 +596,7 @@ fn load_textures(
             wrap_s,
             wrap_t,
             filter,
+            texels_of,
         });
     }
     Ok((textures, map))
@@ -1826,10 +1831,12 @@ mod tests {
         assert_eq!(used, [0, 0, 1, 0]);
         assert_eq!(textures[0].filter, Filter::Linear);
         assert_eq!(textures[1].filter, Filter::Nearest);
-        for t in textures {
+        for (i, t) in textures.iter().enumerate() {
             assert_eq!((t.width, t.height), (2, 1));
-            assert_eq!(t.rgba, [255, 0, 0, 255, 0, 255, 0, 255]);
+            assert_eq!(loaded.desc.texels(i), [255, 0, 0, 255, 0, 255, 0, 255]);
         }
+        assert_eq!(textures[1].texels_of, Some(0), "texels held once");
+        assert!(textures[1].rgba.is_empty());
     }
 
     /// Accessors without a bufferView (zeros but for a sparse part) are bounded together,
