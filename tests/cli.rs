@@ -265,6 +265,45 @@ fn mistakes_are_one_clear_line() {
         .arg(&recorded));
     one_clear_line(&o, &["simulate"], "would be the same file");
     assert_eq!(std::fs::read(&recorded).unwrap(), b"{}");
+    // Over the files a scene reads: `-o` onto its texture, `--stats` onto its buffer and a
+    // gallery's sheet onto a texture each replaced the file (and the scene no longer loaded).
+    let textured = dir.join("textured");
+    std::fs::create_dir_all(&textured).unwrap();
+    let src = data().join("scenes/khronos/BoxTextured/glTF");
+    for f in ["BoxTextured.gltf", "BoxTextured0.bin", "CesiumLogoFlat.png"] {
+        std::fs::copy(src.join(f), textured.join(f)).unwrap();
+    }
+    let boxed = textured.join("BoxTextured.gltf");
+    let (texture, buffer) = (
+        textured.join("CesiumLogoFlat.png"),
+        textured.join("BoxTextured0.bin"),
+    );
+    let kept = [&texture, &buffer].map(|f| std::fs::read(f).unwrap());
+    let render = |flag: &str, onto: &std::path::Path| {
+        let mut cmd = host();
+        cmd.args(["render", "--in-process"]).arg(&boxed);
+        if flag == "--stats" {
+            cmd.arg("-o").arg(textured.join("box.png"));
+        }
+        run(cmd.arg(flag).arg(onto))
+    };
+    one_clear_line(
+        &render("-o", &texture),
+        &["render -o TEXTURE"],
+        "the image (-o) and a file the scene reads would be the same file",
+    );
+    one_clear_line(
+        &render("--stats", &buffer),
+        &["render --stats BUFFER"],
+        "the statistics (--stats) and a file the scene reads would be the same file",
+    );
+    let o = run(host().arg("gallery").arg(&textured).arg("-o").arg(&texture));
+    one_clear_line(
+        &o,
+        &["gallery -o TEXTURE"],
+        "the sheet (-o) and a file a scene reads would be the same file",
+    );
+    assert_eq!([&texture, &buffer].map(|f| std::fs::read(f).unwrap()), kept);
     // Values that were silently clamped or taken, and a scene file named that is not there
     // (it was skipped without a word).
     for (flag, value) in [

@@ -106,18 +106,23 @@ pub fn check_settings(config: &RenderConfig) -> Result<(), RenderError> {
 
 /// Refuses a render that would write one file twice, or over its own scene: `-o a.png
 /// --stats a.png` wrote the image and then the statistics over it (saying it wrote the
-/// image), and `--stats scene.gltf` replaced the scene.
+/// image), `--stats scene.gltf` replaced the scene, and `-o` onto its texture or `--stats`
+/// onto its `.bin` replaced the scene's data.
 fn check_no_file_twice(config: &RenderConfig) -> Result<(), RenderError> {
     let checkpoint = checkpoint::path_for(&config.output);
-    let scene = match &config.scene {
-        SceneSource::File(p) => Some(p.as_path()),
-        SceneSource::Demo => None,
+    let (scene, data) = match &config.scene {
+        SceneSource::File(p) => (Some(p.as_path()), scene_io::files_named(p)),
+        SceneSource::Demo => (None, Vec::new()),
     };
-    refuse_same_files(&[
-        ("the image (-o)", Some(&config.output), FileUse::Written),
+    let mut files = vec![
+        (
+            "the image (-o)",
+            Some(config.output.as_path()),
+            FileUse::Written,
+        ),
         (
             "the image's checkpoint",
-            Some(&checkpoint),
+            Some(checkpoint.as_path()),
             FileUse::Written,
         ),
         (
@@ -126,8 +131,12 @@ fn check_no_file_twice(config: &RenderConfig) -> Result<(), RenderError> {
             FileUse::Written,
         ),
         ("the scene", scene, FileUse::Read),
-    ])
-    .map_err(RenderError::Settings)
+    ];
+    files.extend(
+        data.iter()
+            .map(|p| ("a file the scene reads", Some(p.as_path()), FileUse::Read)),
+    );
+    refuse_same_files(&files).map_err(RenderError::Settings)
 }
 
 /// Whether a command reads a file it names or writes it.

@@ -220,6 +220,19 @@ pub fn gallery(c: &GalleryConfig, progress: &dyn Fn(&str)) -> Result<Vec<Entry>,
     if files.is_empty() {
         return Err(crate::LabError::NoScenes(c.dir.clone()));
     }
+    // The sheet is written last: over a scene or its data, it would lose them after every
+    // render had read them.
+    let data: Vec<_> = files.iter().map(|f| scene_io::files_named(f)).collect();
+    use host::inprocess::FileUse::{Read, Written};
+    let named = std::iter::once(("the sheet (-o)", Some(c.output.as_path()), Written))
+        .chain(files.iter().map(|f| ("a scene", Some(f.as_path()), Read)))
+        .chain(
+            data.iter()
+                .flatten()
+                .map(|p| ("a file a scene reads", Some(p.as_path()), Read)),
+        );
+    host::inprocess::refuse_same_files(&named.collect::<Vec<_>>())
+        .map_err(crate::LabError::Settings)?;
     let mut entries = Vec::new();
     for f in &files {
         progress(&f.display().to_string());

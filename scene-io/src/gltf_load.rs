@@ -105,6 +105,44 @@ pub fn load_gltf(path: &Path) -> Result<Loaded, LoadError> {
     load_gltf_bytes(path, &bytes)
 }
 
+/// The files a glTF file names for its buffers and images, where the loader would open
+/// them, so that a command can refuse to write over a scene's own data (`-o` onto its
+/// texture, `--stats` onto its `.bin` replaced them and the scene no longer loaded). Only
+/// the JSON is read (a GLB's first chunk, not its binary one); a file that cannot be read or
+/// parsed names nothing here, and loading it says why.
+pub fn files_named(path: &Path) -> Vec<PathBuf> {
+    use std::io::Read;
+    let json = (|| -> std::io::Result<Vec<u8>> {
+        let mut file = std::fs::File::open(path)?;
+        let mut head = [0u8; 20];
+        let n = file.read(&mut head)?;
+        if n == 20 && head.starts_with(b"glTF") && &head[16..20] == b"JSON" {
+            let len = u32::from_le_bytes([head[12], head[13], head[14], head[15]]);
+            let mut json = Vec::new();
+            file.take(len as u64).read_to_end(&mut json)?;
+            return Ok(json);
+        }
+        let mut json = head[..n].to_vec();
+        file.read_to_end(&mut json)?;
+        Ok(json)
+    })();
+    let Ok(json) = json else {
+        return Vec::new();
+    };
+    let Ok(doc) = serde_json::from_slice::<serde_json::Value>(&json) else {
+        return Vec::new();
+    };
+    let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    ["buffers", "images"]
+        .iter()
+        .filter_map(|list| doc.get(list)?.as_array())
+        .flatten()
+        .filter_map(|named| named.get("uri")?.as_str())
+        .filter(|uri| !uri.starts_with("data:") && !uri.contains("://"))
+        .map(|uri| dir.join(&*percent_encoding::percent_decode_str(uri).decode_utf8_lossy()))
+        .collect()
+}
+
 /// Loads glTF from bytes; `path` names the file in messages and anchors relative URIs.
 pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     let parse = |message: String| LoadError::Parse {
@@ -1881,6 +1919,33 @@ mod tests {
                 && twice.contains("besides the 12000024 bytes"),
             "{twice}"
         );
+    }
+
+    /// The files a scene names, from a .gltf and from a GLB's JSON chunk alike: local
+    /// URIs, percent-decoded, beside the scene; not data URIs or other schemes.
+    #[test]
+    fn files_named_are_the_local_buffers_and_images() {
+        let dir = std::env::temp_dir().join(format!("magg-files-named-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let json = br#"{"asset":{"version":"2.0"},
+            "buffers":[{"byteLength":4,"uri":"a%20b.bin"},{"byteLength":4,"uri":"data:,x"},
+                       {"byteLength":4}],
+            "images":[{"uri":"tex/c.png"},{"uri":"https://example.com/d.png"}]}"#;
+        let mut glb = b"glTF".to_vec();
+        glb.extend(2u32.to_le_bytes());
+        glb.extend(((20 + json.len()) as u32).to_le_bytes());
+        glb.extend((json.len() as u32).to_le_bytes());
+        glb.extend(b"JSON");
+        glb.extend(json);
+        let expected = [dir.join("a b.bin"), dir.join("tex/c.png")];
+        for (name, bytes) in [("s.gltf", &json[..]), ("s.glb", &glb[..])] {
+            std::fs::write(dir.join(name), bytes).unwrap();
+            assert_eq!(files_named(&dir.join(name)), expected, "{name}");
+        }
+        std::fs::write(dir.join("bad.gltf"), b"{").unwrap();
+        assert!(files_named(&dir.join("bad.gltf")).is_empty());
+        assert!(files_named(&dir.join("none.gltf")).is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

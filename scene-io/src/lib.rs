@@ -5,5 +5,5 @@
 pub mod gltf_load;
 pub mod image_io;
 
-pub use gltf_load::{LoadError, Loaded, load_gltf};
+pub use gltf_load::{LoadError, Loaded, files_named, load_gltf};
 pub use image_io::{ImageError, read_image, write_image};
