@@ -20,6 +20,24 @@ fn render_with_no_scene_writes_the_demo_image() {
     assert_eq!((img.width(), img.height()), (64, 48));
 }
 
+/// A width alone keeps the default size's 4:3 shape where the camera gives no aspect ratio
+/// (the demo's): `--width 160` rendered 160x480.
+#[test]
+fn a_width_alone_keeps_four_by_three() {
+    let dir = scratch("width-alone");
+    for (width, height) in [(160, 120), (7, 6)] {
+        let out = dir.join(format!("{width}.png"));
+        let o = run(host()
+            .args(["render", "--in-process", "--spp", "1", "--width"])
+            .arg(width.to_string())
+            .arg("-o")
+            .arg(&out));
+        assert!(o.status.success(), "{}", stderr(&o));
+        let img = image::open(&out).expect("a PNG was written");
+        assert_eq!((img.width(), img.height()), (width, height));
+    }
+}
+
 /// The README's first command on a fresh clone: `cargo run` builds `magg-host` alone, so a
 /// render that spawns its nodes must need no other executable (they run the host's own).
 #[test]

@@ -552,7 +552,8 @@ struct RenderArgs {
     at_work: host::schedule::AtWork,
     #[arg(long, default_value_t = 640)]
     width: u32,
-    /// Image height; by default from the camera's aspect ratio, else 480.
+    /// Image height; by default from the camera's aspect ratio, else 3/4 of the width (480
+    /// for the default 640).
     #[arg(long)]
     height: Option<u32>,
     /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga (not with
@@ -910,7 +911,8 @@ fn render(args: RenderArgs) -> Result<()> {
     let sampling = sampling(&args)?;
     let settings = RenderSettings {
         width,
-        height: height.unwrap_or(480),
+        // 4:3, the default size's shape: a fixed 480 made `--width 160` a tall strip.
+        height: height.unwrap_or_else(|| ((width as u64 * 3).div_ceil(4) as u32).max(1)),
         spp: sampling.spp,
         seed: args.seed,
         integrator: args.integrator,
