@@ -206,7 +206,10 @@ impl Published {
             at = start + item.len() as u64;
         }
         let file = w.into_inner().map_err(|e| create(e.into_error()))?;
-        file.set_permissions(std::fs::Permissions::from_mode(0o444))
+        // Read-only, and for this user alone: the segment holds the scene, which others on
+        // the machine may not read (its render nodes run as the same user, in containers
+        // too).
+        file.set_permissions(std::fs::Permissions::from_mode(0o400))
             .map_err(create)?;
         Ok(published)
     }
@@ -480,7 +483,7 @@ mod tests {
             );
         }
         let mode = std::fs::metadata(p.path()).unwrap().permissions().mode();
-        assert_eq!(mode & 0o222, 0, "read-only for everyone");
+        assert_eq!(mode & 0o777, 0o400, "read-only, for its user alone");
     }
 
     #[test]
