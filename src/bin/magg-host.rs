@@ -193,8 +193,8 @@ struct RunArgs {
 struct CacheArgs {
     #[command(flatten)]
     run: RunArgs,
-    /// Cache sizes in percent.
-    #[arg(long, value_delimiter = ',', default_values_t = vec![5.0, 10.0, 20.0, 40.0, 100.0])]
+    /// Cache sizes in percent, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "5,10,20,40,100")]
     caches: Vec<f64>,
 }
 
@@ -296,7 +296,7 @@ struct LinksArgs {
     #[command(flatten)]
     cluster: ClusterArgs,
     /// Data sizes in bytes, comma-separated (each at most what a frame carries, 64 MiB).
-    #[arg(long, value_delimiter = ',', default_values_t = vec![640u32, 2560, 10240, 40960], value_parser = transfer_size)]
+    #[arg(long, value_delimiter = ',', default_value = "640,2560,10240,40960", value_parser = transfer_size)]
     sizes: Vec<u32>,
     /// Transfers per node per size (1 to 10,000).
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=10_000))]
@@ -1652,5 +1652,49 @@ fn main() {
     }
     if magg::stdout_failed() {
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    /// A list flag's default is shown in its help as it is typed: given as several values
+    /// it showed `[default: 5 10 20 40 100]`, which the flag (comma-separated) refused.
+    #[test]
+    fn list_defaults_are_shown_as_they_are_typed() {
+        fn walk(cmd: &clap::Command, path: &str, seen: &mut usize) {
+            for arg in cmd.get_arguments() {
+                if arg.get_value_delimiter().is_some() && !arg.get_default_values().is_empty() {
+                    *seen += 1;
+                    assert_eq!(
+                        arg.get_default_values().len(),
+                        1,
+                        "{path} --{}: give the default as one comma-separated string",
+                        arg.get_id()
+                    );
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                walk(sub, &format!("{path} {}", sub.get_name()), seen);
+            }
+        }
+        let cli = Cli::command();
+        cli.clone().debug_assert();
+        let mut seen = 0;
+        walk(&cli, "magg-host", &mut seen);
+        assert!(
+            seen >= 2,
+            "the list flags with defaults were found ({seen})"
+        );
+        let typed = |extra: &[&str]| {
+            let args = [&["magg-host", "experiment", "cache"][..], extra].concat();
+            match Cli::try_parse_from(args).unwrap().command {
+                Command::Experiment(ExperimentCmd::Cache(a)) => a.caches,
+                _ => unreachable!(),
+            }
+        };
+        assert_eq!(typed(&[]), typed(&["--caches", "5,10,20,40,100"]));
     }
 }
