@@ -170,7 +170,7 @@ struct BalanceArgs {
     #[arg(long, default_value_t = 640, value_parser = subscreen_count)]
     subscreens: u32,
     /// The full size (when no render flags are given): 480x270 at 16 spp and 2000
-    /// subscreens (about 30 s on 2 cores; the default takes about 15 s).
+    /// subscreens (about 11 s on 2 cores; the default takes about 2 s).
     #[arg(long)]
     full: bool,
 }
@@ -507,8 +507,9 @@ struct RenderArgs {
     /// machines). The delay model's timing is the same either way.
     #[arg(long, default_value = "auto", value_parser = parse_dma_transport)]
     dma_transport: protocol::DmaTransport,
-    /// Number of subscreens the image is cut into (default: 8 per render node; at most a
-    /// million).
+    /// About how many subscreens the image is cut into: a grid of rectangles of similar
+    /// shape whose count is nearest this (7 gives 6 on a 4:3 image; default: 8 per render
+    /// node; at most a million).
     #[arg(long, value_parser = subscreen_count)]
     subscreens: Option<u32>,
     /// Adaptive redivision: idle nodes get the unbegun half of a busy node's subscreen.
