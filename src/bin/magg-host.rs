@@ -34,7 +34,12 @@ enum Command {
     /// Render every scene of a folder small, on one contact sheet with their names.
     Gallery(GalleryArgs),
     /// Compare an image with a reference: relative MSE and channel means.
-    Compare { image: PathBuf, reference: PathBuf },
+    Compare {
+        /// The image measured (.png, .exr or .pfm).
+        image: PathBuf,
+        /// The image it is measured against, of the same size.
+        reference: PathBuf,
+    },
     /// Predict a render with the simulator from a cluster render's --stats records: by
     /// default the same render (its time beside the measured one), or changed by the flags.
     Simulate(SimulateArgs),
@@ -100,10 +105,13 @@ struct ScalingArgs {
     /// Folder for the recording, measured renders, CSV, plots and report.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// The scene every run renders.
     #[arg(long, default_value = lab::scaling::DEFAULT_SCENE)]
     scene: PathBuf,
+    /// Image width of every run.
     #[arg(long, default_value_t = 480)]
     width: u32,
+    /// Image height of every run.
     #[arg(long, default_value_t = 270)]
     height: u32,
     /// Time scale of the measured points (the paper's link times at 1).
@@ -126,10 +134,13 @@ struct ValidateArgs {
     /// The scene of the compute-bound cases (1 and 2 render nodes).
     #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
     scene: PathBuf,
+    /// Image width of the compute-bound cases.
     #[arg(long, default_value_t = 192)]
     width: u32,
+    /// Image height of the compute-bound cases.
     #[arg(long, default_value_t = 192)]
     height: u32,
+    /// Samples per pixel of the compute-bound cases.
     #[arg(long, default_value_t = 32)]
     spp: u32,
 }
@@ -139,12 +150,16 @@ struct ErrorArgs {
     /// Folder for the images, stats, CSV, plot and report.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// The scene the sweep renders.
     #[arg(long, default_value = "tests/data/scenes/cornell/cornell.gltf")]
     scene: PathBuf,
+    /// The converged image errors are measured against (same size as the renders).
     #[arg(long, default_value = "tests/data/references/cornell/cornell_ref.exr")]
     reference: PathBuf,
+    /// Image width of the sweep's renders.
     #[arg(long, default_value_t = 256)]
     width: u32,
+    /// Image height of the sweep's renders.
     #[arg(long, default_value_t = 256)]
     height: u32,
     /// Largest sample count of the sweep (doubling from 1; 1 to 2^30).
@@ -218,6 +233,8 @@ struct ClusterArgs {
     topology: Option<String>,
     #[command(flatten)]
     secret: magg::SecretArgs,
+    /// The cluster's name: nodes of another cluster id are refused, so two clusters can
+    /// share a network.
     #[arg(long, env = "MAGG_CLUSTER_ID", default_value = fabric::cluster::DEFAULT_CLUSTER_ID)]
     cluster_id: String,
     /// Seconds to wait for the cluster to form.
@@ -320,14 +337,16 @@ struct LinksArgs {
 struct GalleryArgs {
     /// Folder searched (recursively) for .gltf and .glb files.
     dir: PathBuf,
+    /// The contact sheet (PNG).
     #[arg(short, long, default_value = "gallery.png")]
     output: PathBuf,
-    /// Side of each picture in pixels, 16 to 1024 (one outside was silently clamped).
+    /// Side of each picture in pixels, 16 to 1024.
     #[arg(long, default_value_t = 160, value_parser = clap::value_parser!(u32).range(16..=1024))]
     size: u32,
     /// Samples per pixel, 1 to 65536.
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
     spp: u32,
+    /// path (unbiased path tracing) or whitted (the paper's ray tracer).
     #[arg(long, default_value = "path")]
     integrator: IntegratorKind,
     /// Pictures a row, at least 1 (more than there are pictures make one row).
@@ -407,12 +426,16 @@ struct WhittedArgs {
     /// is `../shared/scenes/khronos`.
     #[arg(default_value = "tests/data/scenes/khronos")]
     scenes: PathBuf,
+    /// Image width of each scene's render.
     #[arg(long, default_value_t = 320, value_parser = image_side)]
     width: u32,
+    /// Image height of each scene's render.
     #[arg(long, default_value_t = 240, value_parser = image_side)]
     height: u32,
+    /// Samples per pixel of each scene's render.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     spp: u32,
+    /// Rendering threads (default: one per CPU the process may use).
     #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
     /// Also write the figures as JSON.
@@ -435,6 +458,7 @@ struct RaysArgs {
     /// Any hit instead of the closest (shadow rays: stop at the first opaque surface).
     #[arg(long)]
     any_hit: bool,
+    /// Triangles per chunk of the mesh (the unit render nodes fetch).
     #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
     chunk_triangles: usize,
     /// Also write the figures as JSON.
@@ -465,8 +489,10 @@ struct BenchArgs {
     /// Rays per measurement (at most 100 million).
     #[arg(long, default_value_t = 1_000_000, value_parser = rays_to_bench)]
     rays: usize,
+    /// Rendering threads (default: one per CPU the process may use).
     #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
+    /// Triangles per chunk (the unit render nodes fetch).
     #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
     chunk_triangles: usize,
     /// Also write the figures as JSON.
@@ -551,6 +577,7 @@ struct RenderArgs {
     /// machines, where nodes wait rather than compute).
     #[arg(long, default_value = "auto")]
     at_work: host::schedule::AtWork,
+    /// Image width in pixels.
     #[arg(long, default_value_t = 640)]
     width: u32,
     /// Image height; by default from the camera's aspect ratio, else 3/4 of the width (480
@@ -564,6 +591,7 @@ struct RenderArgs {
     /// Samples per pixel [default: 64; 24 for the built-in demo scene when it is denoised].
     #[arg(long)]
     spp: Option<u32>,
+    /// Seed of every pixel's random numbers: the same seed renders the same bytes.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// path (unbiased path tracing) or whitted (the paper's ray tracer).
