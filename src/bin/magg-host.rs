@@ -1689,6 +1689,26 @@ mod tests {
     use super::*;
     use clap::CommandFactory;
 
+    /// Every flag and argument says in its help what it is (a dozen said nothing but their
+    /// name).
+    #[test]
+    fn every_argument_has_help() {
+        fn walk(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
+            for arg in cmd.get_arguments() {
+                let builtin = matches!(arg.get_id().as_str(), "help" | "version");
+                if !builtin && !arg.is_hide_set() && arg.get_help().is_none() {
+                    missing.push(format!("{path} {}", arg.get_id()));
+                }
+            }
+            for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
+                walk(sub, &format!("{path} {}", sub.get_name()), missing);
+            }
+        }
+        let mut missing = Vec::new();
+        walk(&Cli::command(), "magg-host", &mut missing);
+        assert!(missing.is_empty(), "without help: {missing:?}");
+    }
+
     /// A list flag's default is shown in its help as it is typed: given as several values
     /// it showed `[default: 5 10 20 40 100]`, which the flag (comma-separated) refused.
     #[test]
