@@ -253,6 +253,13 @@ fn mistakes_are_one_clear_line() {
         &png,
         "auto, on or off",
     );
+    // A camera the scene lacks is the user's choice, not a broken header (it said "invalid
+    // scene header").
+    expect_error(
+        &["render", "--in-process", "--camera", "nope"],
+        &png,
+        r#"error: no camera named "nope"; the scene has ["demo"] (and "auto" frames the scene)"#,
+    );
     // One file written twice, or over an input: the second write replaced the first.
     let scene = dir.join("scene.gltf");
     std::fs::copy(data().join("scenes/cornell/cornell.gltf"), &scene).unwrap();

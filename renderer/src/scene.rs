@@ -507,6 +507,12 @@ impl SceneHeader {
 pub enum SceneError {
     #[error("invalid scene header: {0}")]
     Invalid(String),
+    /// `--camera NAME` names none of the scene's cameras (a choice, not a broken header).
+    #[error("no camera named {name:?}; the scene has {}", match names.as_slice() {
+        [] => "none (\"auto\" frames the scene)".to_string(),
+        names => format!("{names:?} (and \"auto\" frames the scene)"),
+    })]
+    NoSuchCamera { name: String, names: Vec<String> },
 }
 
 /// The chunks of `meshes`: each mesh cut into pieces (`chunk::split_mesh`), each piece's
@@ -990,16 +996,9 @@ impl SceneHeader {
                 .iter()
                 .find(|c| c.name == n)
                 .cloned()
-                .ok_or_else(|| {
-                    let names: Vec<&str> = self.cameras.iter().map(|c| c.name.as_str()).collect();
-                    SceneError::Invalid(format!(
-                        "no camera named {n:?}; the scene has {}",
-                        if names.is_empty() {
-                            "none".to_string()
-                        } else {
-                            format!("{names:?}")
-                        }
-                    ))
+                .ok_or_else(|| SceneError::NoSuchCamera {
+                    name: n.to_string(),
+                    names: self.cameras.iter().map(|c| c.name.clone()).collect(),
                 }),
             None => Ok(self
                 .cameras
