@@ -139,6 +139,13 @@ fn in_process_stats_record_every_tile() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(dir.join("p/s.timeline.png").is_file());
     assert!(dir.join("p/s.nodes.png").is_file());
+    // `-o` names a folder: onto a file it said only "File exists (os error 17)".
+    let o = run(host().arg("plot").arg(&stats).arg("-o").arg(&stats));
+    one_clear_line(
+        &o,
+        &["plot -o FILE"],
+        "not a folder (plot -o names the folder",
+    );
     // A render run in its folder names its image there (`-o NAME.png`); plotted from the
     // folder above, the image is found beside the stats file (it was looked for in the
     // folder above, after half the pictures were drawn).

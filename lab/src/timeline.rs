@@ -81,6 +81,13 @@ pub fn plot(stats: &Path, out_dir: Option<&Path>) -> Result<Plots, LabError> {
             _ => PathBuf::from("."),
         },
     };
+    // `-o` names a folder; a file there said only "File exists (os error 17)".
+    if dir.exists() && !dir.is_dir() {
+        return Err(LabError::Settings(format!(
+            "{}: not a folder (plot -o names the folder its PNG files go to)",
+            dir.display()
+        )));
+    }
     std::fs::create_dir_all(&dir).map_err(|source| LabError::Folder {
         path: dir.clone(),
         source,
