@@ -162,11 +162,18 @@ impl Builder {
             self.binary_tree(boxes, distance);
             let tree = self.collapser.collapse(&self.binary, 0, 1);
             let cost = self.collapser.cost[0][0];
-            if best.as_ref().is_none_or(|(c, _)| cost < *c) {
+            // A tree deeper than the walk's stack is no candidate: thousands of copies of a
+            // mesh in one place made every one of them so (and a cluster refused the header
+            // one process rendered with).
+            let walkable = validate_tree(&tree.nodes, tree.order.len()).is_ok();
+            if walkable && best.as_ref().is_none_or(|(c, _)| cost < *c) {
                 best = Some((cost, tree));
             }
         }
-        best.map(|(_, t)| t).unwrap_or_default()
+        best.map(|(_, t)| t).unwrap_or_else(|| {
+            median_splits(boxes, &mut self.binary);
+            self.collapser.collapse(&self.binary, 0, 1)
+        })
     }
 
     /// PLOC at `distance` over `boxes`, one box a leaf, then every node offered for
@@ -762,6 +769,47 @@ fn binned_sah(boxes: &[Aabb], max_leaf: u32, out: &mut Bvh2, scratch: &mut SahSc
     };
 }
 
+/// A binary tree over `boxes`, one a leaf, each node's boxes halved by count along the
+/// widest axis of their centres (ties by index): no cheaper than a search, but never deeper
+/// than log2 of the count plus one, whatever the boxes, where a search's tree can be a chain.
+fn median_splits(boxes: &[Aabb], out: &mut Bvh2) {
+    use obvhs::bvh2::node::Bvh2Node;
+    let centres: Vec<glam::Vec3A> = boxes.iter().map(|b| (b.min + b.max) * 0.5).collect();
+    let mut prims: Vec<u32> = (0..boxes.len() as u32).collect();
+    let mut nodes = vec![Bvh2Node::default()];
+    let mut keys = Vec::new();
+    let mut work = vec![(0usize, 0usize, boxes.len())];
+    while let Some((node, start, end)) = work.pop() {
+        let (bounds, spread) = bounds_of(boxes, &centres, &prims[start..end]);
+        if end - start <= 1 {
+            nodes[node] = Bvh2Node::new(bounds, (end - start) as u32, start as u32);
+            continue;
+        }
+        let axis = (spread.max - spread.min).max_position();
+        keys.clear();
+        keys.extend(
+            prims[start..end]
+                .iter()
+                .map(|&p| sort_key(centres[p as usize][axis], p)),
+        );
+        keys.sort_unstable();
+        for (p, k) in prims[start..end].iter_mut().zip(&keys) {
+            *p = *k as u32;
+        }
+        let left = nodes.len();
+        nodes.extend([Bvh2Node::default(); 2]);
+        nodes[node] = Bvh2Node::new(bounds, 0, left as u32);
+        let mid = start + (end - start) / 2;
+        work.push((left + 1, mid, end));
+        work.push((left, start, mid));
+    }
+    *out = Bvh2 {
+        nodes,
+        primitive_indices: prims,
+        ..Default::default()
+    };
+}
+
 /// The union of the boxes `prims` and the bounds of their centres.
 fn bounds_of(boxes: &[Aabb], centres: &[glam::Vec3A], prims: &[u32]) -> (Aabb, Aabb) {
     let (mut b, mut c) = (Aabb::INVALID, Aabb::INVALID);
@@ -1045,6 +1093,47 @@ mod tests {
             }
             assert!(covered.iter().all(|&c| c == 1), "{n} boxes");
         }
+    }
+
+    /// Thousands of nearly coincident chunk boxes (copies of a mesh in one place) made every
+    /// searched top-level tree deeper than the walk's stack, and a cluster refused the
+    /// header; the build falls back to halving by count, which holds every box once within
+    /// the depth. Many boxes of one size in a row keep the search's tree.
+    #[test]
+    fn the_top_level_tree_stays_within_the_walks_depth() {
+        let piled: Vec<Aabb> = (0..3000)
+            .map(|i| {
+                let x = (i % 7) as f32 * 0.01;
+                Aabb::new(
+                    Vec3A::new(x - 1.0, -1.0, -5.0),
+                    Vec3A::new(x + 1.0, 1.0, -3.0),
+                )
+            })
+            .collect();
+        let searched_too_deep = {
+            let mut b = Builder::default();
+            b.binary_tree(&piled, PlocSearchDistance::Medium);
+            let t = b.collapser.collapse(&b.binary, 0, 1);
+            validate_tree(&t.nodes, t.order.len()).is_err()
+        };
+        assert!(searched_too_deep, "the case the fallback is for");
+        for boxes in [piled, boxes(3000)] {
+            let t = build_top(&boxes);
+            let depth = validate_tree(&t.nodes, t.order.len()).expect("walkable");
+            let mut seen = vec![0; boxes.len()];
+            for &p in &t.order {
+                seen[p as usize] += 1;
+            }
+            assert!(
+                seen.iter().all(|&s| s == 1),
+                "every box once (depth {depth})"
+            );
+        }
+        let mut halved = Bvh2::default();
+        median_splits(&boxes(5000), &mut halved);
+        let t = Collapser::default().collapse(&halved, 0, 1);
+        let depth = validate_tree(&t.nodes, t.order.len()).unwrap();
+        assert!(depth <= 14, "5000 boxes halved: {depth} levels");
     }
 
     /// The expected cost of the subtree at node `i` under the collapse's heuristic (areas
