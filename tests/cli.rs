@@ -1060,6 +1060,113 @@ fn sigterm_stops_a_render_with_status_143() {
     assert!(dir.join("long.png.partial").exists(), "{}", render.log());
 }
 
+/// A stop while the scene is still loading ends the command at once, with nothing written
+/// (there is nothing to keep yet): it waited for the load and preparation to end, half a
+/// minute for 16,000 copies of a mesh.
+#[test]
+fn a_stop_while_loading_ends_at_once() {
+    let dir = scratch("stop-loading");
+    // 3,000 copies of a 2,048-triangle sphere: 6 M triangles, seconds to load and prepare.
+    let n = 32u32;
+    let (mut positions, mut indices) = (Vec::new(), Vec::new());
+    for j in 0..=n {
+        for i in 0..=n {
+            let (t, p) = (
+                std::f32::consts::PI * j as f32 / n as f32,
+                std::f32::consts::TAU * i as f32 / n as f32,
+            );
+            positions.extend([t.sin() * p.cos(), t.cos(), t.sin() * p.sin()]);
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let a = j * (n + 1) + i;
+            indices.extend([a, a + n + 1, a + 1, a + 1, a + n + 1, a + n + 2]);
+        }
+    }
+    let mut buf: Vec<u8> = indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+    let index_bytes = buf.len();
+    buf.extend(positions.iter().flat_map(|v| v.to_le_bytes()));
+    let copies = 3000;
+    let nodes: Vec<String> = (0..copies)
+        .map(|i| {
+            format!(
+                r#"{{"mesh":0,"translation":[{},0,-4]}}"#,
+                (i % 7) as f32 * 0.01
+            )
+        })
+        .collect();
+    let roots: Vec<String> = (0..copies).map(|i| i.to_string()).collect();
+    let scene = dir.join("copies.gltf");
+    let bin = dir.join("copies.bin");
+    std::fs::write(&bin, &buf).unwrap();
+    std::fs::write(
+        &scene,
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[{roots}]}}],
+            "nodes":[{nodes}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":1}},"indices":0}}]}}],
+            "buffers":[{{"byteLength":{len},"uri":"copies.bin"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":{index_bytes}}},
+                           {{"buffer":0,"byteOffset":{index_bytes},"byteLength":{pb}}}],
+            "accessors":[{{"bufferView":0,"componentType":5125,"count":{ni},"type":"SCALAR"}},
+                         {{"bufferView":1,"componentType":5126,"count":{nv},"type":"VEC3",
+                           "min":[-1,-1,-1],"max":[1,1,1]}}]}}"#,
+            roots = roots.join(","),
+            nodes = nodes.join(","),
+            len = buf.len(),
+            pb = buf.len() - index_bytes,
+            ni = indices.len(),
+            nv = positions.len() / 3,
+        ),
+    )
+    .unwrap();
+    let out = dir.join("copies.png");
+    let began = std::time::Instant::now();
+    let mut render = Logged::start(
+        host()
+            .env("MAGG_LOG", "info")
+            .args(["render", "--in-process", "--width", "64", "--height", "48"])
+            .arg(&scene)
+            .arg("-o")
+            .arg(&out),
+    );
+    // Once the command catches SIGTERM (before that the signal would simply kill it), well
+    // before the scene is loaded.
+    let catches_term = || {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", render.pid()));
+        status.ok().and_then(|s| {
+            let mask = s
+                .lines()
+                .find_map(|l| l.strip_prefix("SigCgt:"))?
+                .trim()
+                .to_string();
+            Some(u64::from_str_radix(&mask, 16).ok()? & (1 << (15 - 1)) != 0)
+        }) == Some(true)
+    };
+    while !catches_term() {
+        assert!(
+            began.elapsed() < std::time::Duration::from_secs(60),
+            "SIGTERM never caught: {}",
+            render.log()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_raw(render.pid() as i32).unwrap(),
+        rustix::process::Signal::TERM,
+    );
+    let code = render.wait_exit(std::time::Duration::from_secs(120));
+    let log = render.log();
+    assert_eq!(code, Some(Some(143)), "{log}");
+    assert!(
+        log.contains("SIGTERM: stopped before rendering began; nothing was written"),
+        "after {:.1} s: {log}",
+        began.elapsed().as_secs_f64()
+    );
+    assert!(!out.exists() && !dir.join("copies.png.partial").exists());
+}
+
 /// compare with a reference whose mean is 0 says so instead of a relative difference (it
 /// printed +0.000% for 0.5 against 0), and an image holding NaN is an error naming it (it
 /// printed relMSE NaN and exited 0).

@@ -239,7 +239,27 @@ fn check_writable_dir(path: &std::path::Path) -> Result<(), RenderError> {
 
 /// Loads, renders and writes, returning the statistics of the run.
 pub fn render_in_process(config: &RenderConfig) -> Result<RenderStats, RenderError> {
-    render_in_process_until(config, &AtomicBool::new(false))
+    render_in_process_until(config, &Stop::default())
+}
+
+/// How a user's stop (Ctrl-C, SIGTERM) reaches a render in one process. Once rows are being
+/// rendered it ends the render at the next row with the finished lines kept; before then
+/// there is nothing to keep and nothing written, so whoever watches for the signal may end
+/// the process at once, where loading and preparing a large scene took half a minute and
+/// the signal waited for it.
+#[derive(Default)]
+pub struct Stop {
+    requested: AtomicBool,
+    rendering: AtomicBool,
+}
+
+impl Stop {
+    /// Asks the render to stop; true while no row has been rendered (the process may end
+    /// now, losing nothing).
+    pub fn request(&self) -> bool {
+        self.requested.store(true, Ordering::SeqCst);
+        !self.rendering.load(Ordering::SeqCst)
+    }
 }
 
 /// The finished rectangles of a render in progress, kept as a checkpoint and written to
@@ -422,10 +442,10 @@ fn denoised<D: renderer::SceneData + Sync>(
 }
 
 /// As [`render_in_process`], stopping early (with the finished lines in the checkpoint)
-/// once `cancel` is set.
+/// once `stop` is requested.
 pub fn render_in_process_until(
     config: &RenderConfig,
-    cancel: &AtomicBool,
+    stop: &Stop,
 ) -> Result<RenderStats, RenderError> {
     check_settings(config)?;
     let t0 = Instant::now();
@@ -439,6 +459,9 @@ pub fn render_in_process_until(
     } = prepare(config)?;
     let path = checkpoint::path_for(&config.output);
     let start = checkpoint::start(&path, config.resume, key, settings.width, settings.height)?;
+    // From here (before the line saying the render begins) a stop ends the render through
+    // its rows, the first of which checks for one, keeping what is finished.
+    stop.rendering.store(true, Ordering::SeqCst);
     let load_s = t0.elapsed().as_secs_f64();
     tracing::info!(
         "{}: {} triangles in {} chunks, {} lights, {} textures; camera {:?}; {}x{} at {} spp ({})",
@@ -484,7 +507,7 @@ pub fn render_in_process_until(
         config.threads,
         &rects,
         image,
-        cancel,
+        &stop.requested,
         &watch,
     );
     let Watch {

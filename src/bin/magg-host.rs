@@ -1038,20 +1038,24 @@ fn render(args: RenderArgs) -> Result<()> {
         print_cluster_summary(&stats);
         return Ok(());
     }
-    let cancel = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let c = cancel.clone();
-    // Ctrl-C or SIGTERM stops the render with its finished lines kept for --resume.
+    let stop = std::sync::Arc::new(host::inprocess::Stop::default());
+    let s = stop.clone();
+    // Ctrl-C or SIGTERM stops the render with its finished lines kept for --resume, or
+    // before the first line at once.
     std::thread::spawn(move || {
         if let Ok(rt) = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
         {
             let signal = rt.block_on(magg::stop_signal());
+            if s.request() {
+                magg::say!("{signal}: stopped before rendering began; nothing was written");
+                std::process::exit(magg::stopped_exit_code());
+            }
             tracing::warn!("{signal}: stopping the render");
-            c.store(true, std::sync::atomic::Ordering::SeqCst);
         }
     });
-    let stats = match host::inprocess::render_in_process_until(&config, &cancel) {
+    let stats = match host::inprocess::render_in_process_until(&config, &stop) {
         Err(e @ host::RenderError::Interrupted { .. }) => {
             magg::say!("{e}");
             std::process::exit(magg::stopped_exit_code());
