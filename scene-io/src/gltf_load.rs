@@ -143,12 +143,78 @@ pub fn files_named(path: &Path) -> Vec<PathBuf> {
         .collect()
 }
 
+/// Checks a GLB container's header and chunk headers, so that a truncated or foreign file
+/// is said as such: the `gltf` crate's words for these ("failed to fill whole buffer",
+/// "could not completely read the object", "JSON chunk length exceeds that of slice") name
+/// neither the part nor the sizes.
+fn check_glb(bytes: &[u8]) -> Result<(), String> {
+    let word = |at: usize| {
+        bytes
+            .get(at..at + 4)
+            .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+    };
+    let (Some(version), Some(total)) = (word(4), word(8)) else {
+        return Err(format!(
+            "a GLB file starts with a 12-byte header; this one has {} bytes in all",
+            bytes.len()
+        ));
+    };
+    if version != 2 {
+        return Err(format!("GLB version {version}; only version 2 is read"));
+    }
+    if total as usize != bytes.len() {
+        return Err(format!(
+            "its header gives its length as {total} bytes, but the file has {} (cut short, \
+             or more than one file)",
+            bytes.len()
+        ));
+    }
+    let mut at = 12;
+    let mut first = true;
+    while at < bytes.len() {
+        let (Some(len), Some(kind)) = (word(at), bytes.get(at + 4..at + 8)) else {
+            return Err(format!(
+                "a chunk header at byte {at} needs 8 bytes; {} are left",
+                bytes.len() - at
+            ));
+        };
+        let name = if kind == b"JSON" {
+            "JSON".to_string()
+        } else if kind == b"BIN\0" {
+            "BIN".to_string()
+        } else {
+            format!("{:?}", String::from_utf8_lossy(kind))
+        };
+        if first && kind != b"JSON" {
+            return Err(format!(
+                "its first chunk is {name}, where a GLB file's is JSON"
+            ));
+        }
+        let left = bytes.len() - at - 8;
+        if len as usize > left {
+            return Err(format!(
+                "its {name} chunk at byte {at} gives {len} bytes, but only {left} follow (cut \
+                 short?)"
+            ));
+        }
+        at += 8 + len as usize;
+        first = false;
+    }
+    if first {
+        return Err("it has no JSON chunk (the header alone)".into());
+    }
+    Ok(())
+}
+
 /// Loads glTF from bytes; `path` names the file in messages and anchors relative URIs.
 pub fn load_gltf_bytes(path: &Path, bytes: &[u8]) -> Result<Loaded, LoadError> {
     let parse = |message: String| LoadError::Parse {
         path: path.into(),
         message,
     };
+    if bytes.starts_with(b"glTF") {
+        check_glb(bytes).map_err(&parse)?;
+    }
     let raw = gltf::Gltf::from_slice_without_validation(bytes).map_err(|e| parse(e.to_string()))?;
     for ext in raw.extensions_required() {
         if !SUPPORTED_EXTENSIONS.contains(&ext) {
@@ -1946,6 +2012,58 @@ mod tests {
         assert!(files_named(&dir.join("bad.gltf")).is_empty());
         assert!(files_named(&dir.join("none.gltf")).is_empty());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A GLB file cut short, of another version or with its chunks out of place is said as
+    /// such, with the sizes (the `gltf` crate said "failed to fill whole buffer" and the
+    /// like).
+    #[test]
+    fn broken_glb_containers_are_said_as_such() {
+        let json = br#"{"asset":{"version":"2.0"},"scenes":[{"nodes":[]}]}  "#;
+        let glb = |version: u32, total: Option<u32>, chunks: &[(&[u8; 4], &[u8], Option<u32>)]| {
+            let mut body = Vec::new();
+            for (kind, data, len) in chunks {
+                body.extend(len.unwrap_or(data.len() as u32).to_le_bytes());
+                body.extend(*kind);
+                body.extend(*data);
+            }
+            let mut out = b"glTF".to_vec();
+            out.extend(version.to_le_bytes());
+            out.extend(total.unwrap_or(12 + body.len() as u32).to_le_bytes());
+            out.extend(body);
+            out
+        };
+        let whole = glb(2, None, &[(b"JSON", json, None)]);
+        assert!(load_gltf_bytes(Path::new("ok.glb"), &whole).is_ok());
+        let mut trailing = whole.clone();
+        trailing.extend(b"more");
+        for (bytes, says) in [
+            (
+                b"glTF\x02\0".to_vec(),
+                "12-byte header; this one has 6 bytes",
+            ),
+            (glb(1, None, &[(b"JSON", json, None)]), "GLB version 1"),
+            (
+                glb(2, Some(1_000_000), &[(b"JSON", json, None)]),
+                "length as 1000000 bytes, but the file has 73",
+            ),
+            (trailing, "but the file has 77"),
+            (
+                glb(2, None, &[(b"JSON", json, Some(1000))]),
+                "JSON chunk at byte 12 gives 1000 bytes, but only 53 follow",
+            ),
+            (
+                glb(2, None, &[(b"BIN\0", json, None)]),
+                "first chunk is BIN",
+            ),
+            (glb(2, None, &[]), "no JSON chunk"),
+        ] {
+            let e = load_gltf_bytes(Path::new("broken.glb"), &bytes)
+                .map(|_| ())
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(says), "{e:?} should say {says:?}");
+        }
     }
 
     #[test]
