@@ -833,6 +833,118 @@ fn simulate_replays_a_render_on_a_topology_file() {
     );
 }
 
+/// A topology file's `[model] link` and `time_scale` and its `cluster_id` hold unless a flag
+/// gives another, and the stats record what the render used. The command line's defaults
+/// replaced all three: the file's paper links ran as none at scale 1 (and the stats'
+/// `topology_file` said 1), and the host took nodes of the default id, not the file's.
+#[test]
+fn a_topology_files_model_and_cluster_id_hold_unless_a_flag_is_given() {
+    let dir = scratch("topology-own");
+    let file = dir.join("own.toml");
+    std::fs::write(
+        &file,
+        "name = \"own\"\ncluster_id = \"other\"\n[grid]\ncards = 1\nrows = 1\ncols = 1\n\
+         [model]\nlink = \"paper\"\ntime_scale = 0.5\nbase_us = 100.0\n",
+    )
+    .unwrap();
+    let render = |flags: &[&str], name: &str| -> serde_json::Value {
+        let stats = dir.join(format!("{name}.json"));
+        let o = run(host()
+            .arg("render")
+            .arg(data().join("scenes/cornell/cornell.gltf"))
+            .args(["--quiet", "--width", "8", "--height", "4", "--spp", "1"])
+            .arg("--spawn")
+            .arg(&file)
+            .args(flags)
+            .arg("--stats")
+            .arg(&stats)
+            .arg("-o")
+            .arg(dir.join(format!("{name}.png"))));
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap()
+    };
+    let kept = |s: &serde_json::Value, link: &str, scale: &str| {
+        assert_eq!(
+            s["link_model"].as_str(),
+            Some(link),
+            "{}",
+            s["topology_file"]
+        );
+        let file = s["topology_file"].as_str().unwrap();
+        for line in [
+            format!("link = \"{}\"", link.to_lowercase()),
+            format!("time_scale = {scale}"),
+            "base_us = 100.0".into(),
+            "cluster_id = \"other\"".into(),
+        ] {
+            assert!(file.lines().any(|l| l == line), "{line:?} in {file}");
+        }
+    };
+    let own = render(&[], "own");
+    kept(&own, "Paper", "0.5");
+    assert_eq!(own["time_scale"].as_f64(), Some(0.5));
+    let flags = render(&["--link-model", "none", "--time-scale", "0.25"], "flags");
+    kept(&flags, "None", "0.25");
+    assert_eq!(flags["time_scale"].as_f64(), Some(0.25));
+    // Nodes started by hand join only with the file's id.
+    let mut host = Logged::start(
+        host()
+            .env("MAGG_SECRET", "a topology file's own cluster id")
+            .env_remove("MAGG_CLUSTER_ID")
+            .env("MAGG_LOG", "info")
+            .args([
+                "render", "--quiet", "--width", "8", "--height", "4", "--spp", "1",
+            ])
+            .args(["--listen", "127.0.0.1:0", "--topology"])
+            .arg(&file)
+            .arg("-o")
+            .arg(dir.join("listen.png")),
+    );
+    let addr = host.join_address();
+    let node = |role: &str, id: Option<&str>| {
+        let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_magg-host"));
+        c.args([
+            role,
+            "--join",
+            &addr,
+            "--listen",
+            "127.0.0.1:0",
+            "--log",
+            "warn",
+        ])
+        .env("MAGG_SECRET", "a topology file's own cluster id")
+        .env_remove("MAGG_CLUSTER_ID");
+        if let Some(id) = id {
+            c.args(["--cluster-id", id]);
+        }
+        Logged::start(&mut c)
+    };
+    let mut stranger = node("render-node", None);
+    assert_ne!(
+        stranger.wait_exit(std::time::Duration::from_secs(60)),
+        Some(Some(0)),
+        "{}",
+        stranger.log()
+    );
+    assert!(
+        stranger
+            .log()
+            .contains(r#"this is cluster "other", not "magg""#),
+        "{}",
+        stranger.log()
+    );
+    let _members = [
+        node("fork-node", Some("other")),
+        node("render-node", Some("other")),
+    ];
+    assert_eq!(
+        host.wait_exit(std::time::Duration::from_secs(60)),
+        Some(Some(0)),
+        "{}",
+        host.log()
+    );
+}
+
 /// `experiment speedup` at a tiny size: a recording, measured points on real processes (1, 2
 /// and 8 render nodes) each beside its prediction, simulated curves to 1000 render nodes,
 /// and every finding of the paper checked in the report.

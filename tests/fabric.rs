@@ -24,7 +24,6 @@ fn config(topology: &str, mode: ClusterMode) -> ClusterConfig {
         mode,
         topology: Topology::resolve(topology).unwrap(),
         secret: Secret::new("fabric test secret").unwrap(),
-        cluster_id: "magg".into(),
         join_timeout: Duration::from_secs(120),
         node_log: "error".into(),
         node_program: env!("CARGO_BIN_EXE_magg-host").into(),

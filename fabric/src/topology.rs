@@ -54,6 +54,9 @@ pub struct NodeSpec {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Topology {
     pub name: String,
+    /// The id every process of the cluster gives at the handshake: the file's `cluster_id`,
+    /// else [`crate::cluster::DEFAULT_CLUSTER_ID`] (what nodes started by hand give unless
+    /// told otherwise), which the host's `--cluster-id` replaces.
     pub cluster_id: String,
     /// Indexed by node id; the host is node 0.
     pub nodes: Vec<NodeSpec>,
@@ -244,7 +247,11 @@ impl Topology {
                 (nodes, file.link.iter().map(|l| l.between).collect())
             }
         };
-        let cluster_id = file.cluster_id.unwrap_or_else(|| name.clone());
+        // Not the name: a file that names its machine and says nothing of the id keeps the
+        // id that nodes started by hand give by default, as a preset does.
+        let cluster_id = file
+            .cluster_id
+            .unwrap_or_else(|| crate::cluster::DEFAULT_CLUSTER_ID.to_string());
         let mut t = Topology {
             name,
             cluster_id,
@@ -630,6 +637,32 @@ mod tests {
         scaled.model.time_scale = 0.5;
         scaled.model.link = crate::model::LinkModelKind::Paper;
         assert!(scaled.is_preset());
+    }
+
+    /// A file's cluster id and link model are its own, and come back in its TOML form (which
+    /// a render's stats keep); with no id, the one nodes give by default, not the file's name
+    /// (the host gave nodes that id whatever the file said, and the name was never used).
+    #[test]
+    fn a_files_cluster_id_and_model_are_its_own() {
+        let grid = "[grid]\ncards = 1\nrows = 1\ncols = 2\n";
+        let own = Topology::from_toml(&format!(
+            "name = \"g\"\ncluster_id = \"other\"\n{grid}[model]\nlink = \"paper\"\ntime_scale = 0.5\n"
+        ))
+        .unwrap();
+        assert_eq!(own.cluster_id, "other");
+        assert_eq!(own.model.link, crate::model::LinkModelKind::Paper);
+        assert_eq!(own.model.time_scale, 0.5);
+        let again = Topology::from_toml(&own.to_toml()).unwrap();
+        assert_eq!(
+            (again.cluster_id.as_str(), again.model),
+            ("other", own.model)
+        );
+        let unnamed = Topology::from_toml(&format!("name = \"g\"\n{grid}")).unwrap();
+        assert_eq!(unnamed.cluster_id, crate::cluster::DEFAULT_CLUSTER_ID);
+        for preset in ["magg", "tiny", "grid:2x1x3"] {
+            let t = Topology::preset(preset).unwrap();
+            assert_eq!(t.cluster_id, crate::cluster::DEFAULT_CLUSTER_ID, "{preset}");
+        }
     }
 
     #[test]

@@ -26,7 +26,6 @@ pub struct ClusterConfig {
     pub mode: ClusterMode,
     pub topology: Topology,
     pub secret: Secret,
-    pub cluster_id: String,
     pub join_timeout: Duration,
     /// Log level of spawned nodes.
     pub node_log: String,
@@ -40,6 +39,8 @@ pub struct ClusterConfig {
 }
 
 impl ClusterConfig {
+    /// The topology's link model and time scale, but for those given (`None` keeps the
+    /// topology's: a topology file's `[model]`, or a preset's defaults).
     pub fn with_model(
         mut self,
         link: Option<LinkModelKind>,
@@ -142,7 +143,7 @@ pub async fn start_on(
                     r,
                     &bound.to_string(),
                     &config.secret,
-                    &config.cluster_id,
+                    &config.topology.cluster_id,
                     &config.node_log,
                 )
                 .map_err(StartError::Spawn)?,
@@ -160,7 +161,7 @@ pub async fn start_on(
         listener,
         config.topology.clone(),
         config.secret.clone(),
-        &config.cluster_id,
+        &config.topology.cluster_id,
         config.join_timeout,
         progress,
         matches!(config.mode, ClusterMode::Listen(_)),
@@ -229,7 +230,6 @@ mod tests {
             mode: ClusterMode::Spawn,
             topology: Topology::resolve("tiny").unwrap(),
             secret: Secret::new("spawn test secret").unwrap(),
-            cluster_id: "magg".into(),
             join_timeout: Duration::from_secs(60),
             node_log: "error".into(),
             node_program: program.into(),

@@ -142,8 +142,16 @@ fn predict_on(
         .topology
         .clone()
         .unwrap_or_else(|| topology.name.clone());
+    // A topology file given here is a machine with its own `[model]`: its link model and
+    // time scale hold as they would for `render --spawn FILE` (they gave way to the recorded
+    // render's). A preset's are defaults, not its own, so the recorded ones carry over.
+    let own_model = overrides
+        .topology
+        .as_deref()
+        .is_some_and(|spec| Topology::preset(spec).is_err());
     let link = match (overrides.link, recorded.link_model.as_deref()) {
         (Some(l), _) => l,
+        (None, _) if own_model => topology.model.link,
         (None, Some(name)) => name
             .to_lowercase()
             .parse()
@@ -155,7 +163,7 @@ fn predict_on(
     };
     let time_scale = overrides
         .time_scale
-        .or(recorded.time_scale)
+        .or(recorded.time_scale.filter(|_| !own_model))
         .unwrap_or(topology.model.time_scale);
     let mode = match (overrides.transfer, recorded.transfer.as_deref()) {
         (Some(t), _) => t,
@@ -501,6 +509,38 @@ mod tests {
             (p.predicted_s - 0.2).abs() < 1e-9,
             "two subscreens each, no delays"
         );
+    }
+
+    /// A topology file given for the machine brings its own link model and time scale, as
+    /// it does to a render (the recorded render's replaced them); a flag still wins, and a
+    /// preset, which has none of its own, keeps the recorded ones.
+    #[test]
+    fn a_topology_files_model_holds_over_the_recorded_one() {
+        let dir = std::env::temp_dir().join(format!("lab-simulate-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("pair.toml");
+        std::fs::write(
+            &file,
+            "name = \"pair\"\n[grid]\ncards = 1\nrows = 1\ncols = 2\n[model]\nlink = \"none\"\ntime_scale = 0.5\n",
+        )
+        .unwrap();
+        let on = |topology: &str, time_scale: Option<f64>| {
+            let p = predict(
+                &stats(),
+                &Overrides {
+                    topology: Some(topology.into()),
+                    time_scale,
+                    ..Overrides::default()
+                },
+            )
+            .unwrap();
+            (p.link_model, p.time_scale)
+        };
+        let path = file.to_str().unwrap();
+        assert_eq!(on(path, None), (LinkModelKind::None, 0.5));
+        assert_eq!(on(path, Some(0.25)), (LinkModelKind::None, 0.25));
+        assert_eq!(on("grid:1x1x2", None), (LinkModelKind::Paper, 0.1));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

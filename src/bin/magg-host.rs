@@ -233,10 +233,12 @@ struct ClusterArgs {
     topology: Option<String>,
     #[command(flatten)]
     secret: magg::SecretArgs,
-    /// The cluster's name: nodes of another cluster id are refused, so two clusters can
-    /// share a network.
-    #[arg(long, env = "MAGG_CLUSTER_ID", default_value = fabric::cluster::DEFAULT_CLUSTER_ID)]
-    cluster_id: String,
+    /// The cluster's name, which every node gives: nodes of another are refused, so two
+    /// clusters can share a network [default: the topology file's `cluster_id`, else magg].
+    // A default here replaced the file's id, which nodes then had to give: an Option tells
+    // a given id from none.
+    #[arg(long, env = "MAGG_CLUSTER_ID")]
+    cluster_id: Option<String>,
     /// Seconds to wait for the cluster to form.
     #[arg(long, default_value_t = 120, value_parser = magg::wait_seconds)]
     join_timeout: u64,
@@ -254,7 +256,16 @@ impl ClusterArgs {
             ),
             None => (host::cluster::ClusterMode::Spawn, self.spawn.clone()),
         };
-        let topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
+        let mut topology = fabric::Topology::resolve(&spec).map_err(anyhow::Error::msg)?;
+        if let Some(id) = &self.cluster_id {
+            if *id != topology.cluster_id {
+                tracing::info!(
+                    "cluster id {id:?} (--cluster-id or MAGG_CLUSTER_ID) instead of the topology's {:?}",
+                    topology.cluster_id
+                );
+            }
+            topology.cluster_id = id.clone();
+        }
         // A secret generated for nodes started by hand goes to a file they can read, once
         // the host listens (`host::cluster::bind`). A file of that name already there is
         // used, not replaced: it is an earlier run's secret, which nodes may hold (or a file
@@ -299,7 +310,6 @@ impl ClusterArgs {
             mode,
             topology,
             secret,
-            cluster_id: self.cluster_id.clone(),
             join_timeout: std::time::Duration::from_secs(self.join_timeout),
             node_log: self.node_log.clone(),
             node_program: own_program()?,
@@ -321,9 +331,10 @@ struct LinksArgs {
     /// Packets per distance for the one-packet formula (1 to 10,000).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=10_000))]
     probes: u32,
-    /// Multiplies every modelled delay (above 0, at most a million).
-    #[arg(long, default_value_t = 1.0, value_parser = time_scale)]
-    time_scale: f64,
+    /// Multiplies every modelled delay (above 0, at most a million) [default: the topology
+    /// file's `[model] time_scale`, else 1].
+    #[arg(long, value_parser = time_scale)]
+    time_scale: Option<f64>,
     /// Folder for the CSV files and the plot.
     #[arg(long, default_value = "out/links")]
     out: PathBuf,
@@ -545,12 +556,16 @@ struct RenderArgs {
     /// or local (near its last one, so its cache holds what it needs).
     #[arg(long, default_value = "plain")]
     order: host::schedule::Order,
-    /// Delay model of the links: none, or paper (the transputer's measured timings).
-    #[arg(long, default_value = "none")]
-    link_model: fabric::model::LinkModelKind,
-    /// Multiplies every modelled delay.
-    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
-    time_scale: f64,
+    /// Delay model of the links: none, or paper (the transputer's measured timings)
+    /// [default: the topology file's `[model] link`, else none].
+    // Defaults here replaced a topology file's own values: an Option tells a given flag
+    // from none.
+    #[arg(long)]
+    link_model: Option<fabric::model::LinkModelKind>,
+    /// Multiplies every modelled delay [default: the topology file's `[model] time_scale`,
+    /// else 1].
+    #[arg(long, allow_negative_numbers = true)]
+    time_scale: Option<f64>,
     /// Rendering threads per render node.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=magg::MOST_THREADS as i64))]
     render_threads: u32,
@@ -983,17 +998,18 @@ fn render(args: RenderArgs) -> Result<()> {
                 args.cache
             );
         }
-        if !(args.time_scale > 0.0 && args.time_scale <= fabric::model::MOST_TIME_SCALE) {
+        if let Some(scale) = args.time_scale
+            && !(scale > 0.0 && scale <= fabric::model::MOST_TIME_SCALE)
+        {
             anyhow::bail!(
-                "--time-scale must be a number above 0 and at most {}, not {:?}",
+                "--time-scale must be a number above 0 and at most {}, not {scale:?}",
                 fabric::model::MOST_TIME_SCALE,
-                args.time_scale
             );
         }
         let cluster = args
             .cluster
             .config()?
-            .with_model(Some(args.link_model), Some(args.time_scale));
+            .with_model(args.link_model, args.time_scale);
         let cfg = host::distributed::ClusterRenderConfig {
             render: config,
             cluster,
@@ -1568,10 +1584,7 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             Ok(())
         }
         ExperimentCmd::Links(args) => {
-            let cluster = args
-                .cluster
-                .config()?
-                .with_model(None, Some(args.time_scale));
+            let cluster = args.cluster.config()?.with_model(None, args.time_scale);
             let (sizes, count, probes) = if args.full {
                 ((0..8).map(|i| 640u32 << i).collect(), 20, 100)
             } else {
