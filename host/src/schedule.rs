@@ -177,7 +177,7 @@ pub struct Plan {
 /// scheduler of the machine are shared among more of them, for no more work done. So the
 /// host hands work to at most `at_work` of them; the others wait for work as they would at
 /// the end of a frame, and stand in for one that is lost.
-#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Machine {
     pub nodes: Vec<NodeId>,
     pub at_work: usize,

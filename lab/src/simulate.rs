@@ -8,9 +8,10 @@
 //! another machine or under another policy.
 
 use fabric::{Topology, model::LinkModelKind};
+use host::schedule::AtWork;
 use protocol::TransferMode;
 use serde::{Deserialize, Serialize};
-use sim::{Balance, Overheads, SimConfig, SimResult, Transfer, Workload};
+use sim::{Balance, Machine, Overheads, SimConfig, SimResult, Transfer, Workload};
 
 /// What to change from the recorded render; `None` keeps the recorded setting.
 #[derive(Clone, Debug, Default)]
@@ -28,6 +29,10 @@ pub struct Overrides {
     pub adaptive: Option<bool>,
     /// Multiplies every recorded CPU time.
     pub cpu_scale: Option<f64>,
+    /// How many render nodes work at once: `All`, or `Count(n)` of all the render nodes
+    /// (one machine). `None`: the recorded render's limits on its own machine, none on
+    /// another.
+    pub at_work: Option<AtWork>,
     /// The real costs beyond the models (see [`measure_overheads`]); none by default. They
     /// describe the machine the processes ran on, not the render, so giving them still
     /// compares the prediction with the recorded render's time.
@@ -47,10 +52,23 @@ struct Recorded {
     adaptive: Option<bool>,
     demand_via: Option<String>,
     render_threads: Option<u32>,
+    /// `--at-work` as asked for, and the limits it came to.
+    at_work: Option<String>,
+    #[serde(default)]
+    machine_limits: Vec<Machine>,
     #[serde(default)]
     seconds: RecordedSeconds,
     #[serde(default)]
     subscreens: serde_json::Value,
+    #[serde(default)]
+    nodes: Vec<RecordedNode>,
+}
+
+#[derive(Deserialize, Default)]
+struct RecordedNode {
+    role: Option<String>,
+    /// Rendering, by the clock.
+    busy_s: Option<f64>,
 }
 
 #[derive(Deserialize, Default)]
@@ -78,6 +96,10 @@ pub enum SimulateError {
     #[error("a cache of {0}%: give a percentage above 0 and at most 100")]
     Cache(f64),
     #[error(
+        "--at-work {0}: the simulator knows no machine's CPUs; give all or a number of render nodes"
+    )]
+    AtWork(AtWork),
+    #[error(
         "a subscreen record names node {node}, which is not a render node of topology {topology}"
     )]
     NotARenderNode {
@@ -100,6 +122,9 @@ pub struct Prediction {
     pub subscreens: String,
     pub adaptive: bool,
     pub cpu_scale: f64,
+    /// Render nodes that share a machine and how many of them worked at once (none: every
+    /// render node had a processor of its own).
+    pub machine_limits: Vec<Machine>,
     /// The host's render time in the stats file, when the simulated render is that render.
     pub measured_s: Option<f64>,
     pub predicted_s: f64,
@@ -225,6 +250,50 @@ fn predict_on(
     };
     let adaptive = overrides.adaptive.or(recorded.adaptive).unwrap_or(false);
     let cpu_scale = overrides.cpu_scale.unwrap_or(1.0);
+    let mut notes = Vec::new();
+    // The recorded render let only so many of its render nodes work at once where they
+    // shared a machine's few CPUs (`machine_limits`); left out, the replay gave work to all
+    // 80 of a laptop's nodes and predicted a fortieth of the time.
+    let machines = match overrides.at_work {
+        None if overrides.topology.is_none() => {
+            let changes_auto = overrides.link.is_some()
+                || overrides.transfer.is_some()
+                || overrides.cache_percent.is_some()
+                || overrides.via.is_some();
+            if !recorded.machine_limits.is_empty()
+                && changes_auto
+                && recorded.at_work.as_deref() == Some("auto")
+            {
+                notes.push(format!(
+                    "the recorded render's limit ({}) is kept; --at-work auto chose it for the recorded settings, and the host might choose another for these (--at-work all or a number sets it)",
+                    at_work_text(&recorded.machine_limits)
+                ));
+            }
+            recorded.machine_limits.clone()
+        }
+        None => {
+            if !recorded.machine_limits.is_empty() {
+                notes.push(format!(
+                    "the recorded render's limit ({}) is of its own machine; on this one every render node works at once (--at-work a number limits them)",
+                    at_work_text(&recorded.machine_limits)
+                ));
+            }
+            Vec::new()
+        }
+        Some(AtWork::All) => Vec::new(),
+        Some(AtWork::Count(n)) => {
+            let nodes = topology.render_nodes();
+            if nodes.len() > n as usize {
+                vec![Machine {
+                    nodes,
+                    at_work: n as usize,
+                }]
+            } else {
+                Vec::new()
+            }
+        }
+        Some(other) => return Err(SimulateError::AtWork(other)),
+    };
     let config = SimConfig {
         link,
         time_scale,
@@ -233,6 +302,7 @@ fn predict_on(
         adaptive,
         cpu_scale,
         overheads: overrides.overheads.unwrap_or_default(),
+        machines: machines.clone(),
         ..SimConfig::new(topology)
     };
     let result = sim::simulate(&workload, &config)?;
@@ -246,13 +316,15 @@ fn predict_on(
         && overrides.subscreens.is_none()
         && !overrides.static_division
         && overrides.adaptive.is_none()
-        && overrides.cpu_scale.is_none();
+        && overrides.cpu_scale.is_none()
+        && overrides.at_work.is_none();
     let measured_s = recorded.seconds.render.filter(|_| same_render);
-    let mut notes = Vec::new();
     if let Some(threads) = recorded.render_threads.filter(|&t| t > 1) {
         notes.push(format!(
             "the render ran {threads} rendering threads per render node; the simulator models one, so it predicts a render of one thread per node"
         ));
+    } else if let Some(note) = cpus_shared(&recorded).filter(|_| overrides.cpu_scale.is_none()) {
+        notes.push(note);
     }
     let predicted_s = result.total_s;
     let prediction = Prediction {
@@ -264,6 +336,7 @@ fn predict_on(
         subscreens,
         adaptive,
         cpu_scale,
+        machine_limits: machines,
         measured_s,
         predicted_s,
         error_percent: measured_s
@@ -273,6 +346,44 @@ fn predict_on(
         result,
     };
     Ok((prediction, config.topology))
+}
+
+/// A note when the render nodes rendered markedly longer by the clock than on the CPU: other
+/// processes (the host's, or anyone's on a shared machine) took part of their CPUs, which a
+/// replay of CPU times cannot know of. Of one rendering thread a node only, where the clock
+/// and the CPU time are of the same thread.
+fn cpus_shared(recorded: &Recorded) -> Option<String> {
+    let busy: f64 = recorded
+        .nodes
+        .iter()
+        .filter(|n| n.role.as_deref() == Some("Render"))
+        .filter_map(|n| n.busy_s)
+        .sum();
+    let cpu: f64 = recorded
+        .subscreens
+        .as_array()?
+        .iter()
+        .filter_map(|r| r.get("cpu_s").and_then(|c| c.as_f64()))
+        .sum();
+    let ratio = busy / cpu;
+    // Under a tenth more is the noise of a quiet machine.
+    (cpu > 0.0 && ratio > 1.1).then(|| {
+        format!(
+            "the render nodes rendered for {busy:.3} s by the clock but {cpu:.3} s on the CPU ({ratio:.2}x): other processes shared their CPUs, which the replay of CPU times leaves out (--cpu-scale {ratio:.2} stands for it)"
+        )
+    })
+}
+
+/// How many render nodes worked at once, machine by machine.
+fn at_work_text(machines: &[Machine]) -> String {
+    if machines.is_empty() {
+        return "every render node at once".into();
+    }
+    let each: Vec<String> = machines
+        .iter()
+        .map(|m| format!("{} of the {} on one machine", m.at_work, m.nodes.len()))
+        .collect();
+    format!("render nodes at work at once: {}", each.join(", "))
 }
 
 /// The overheads read off a recorded render, with what they were read from.
@@ -338,7 +449,13 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
     records.sort_by_key(|r| (r.y, r.x));
     // The first handout to each render node: the first wave, as long as the job took to
     // reach them all.
-    let render_nodes = bare.result.render_nodes.max(1);
+    // As many as may work at once: a machine's limit keeps the rest waiting.
+    let held_back: usize = bare
+        .machine_limits
+        .iter()
+        .map(|m| m.nodes.len().saturating_sub(m.at_work))
+        .sum();
+    let render_nodes = bare.result.render_nodes.saturating_sub(held_back).max(1);
     let mut recorded_starts: Vec<f64> = records.iter().map(|r| r.start_s).collect();
     recorded_starts.sort_by(f64::total_cmp);
     let mut modelled_starts: Vec<f64> = bare
@@ -395,8 +512,15 @@ pub fn measure_overheads(stats_json: &str) -> Result<MeasuredOverheads, Simulate
 /// The prediction as a few lines and a table of the render nodes.
 pub fn summary(p: &Prediction) -> String {
     let mut out = format!(
-        "{}\nlink model {:?} at time scale {}, transfer {}, subscreens {}, adaptive {}, cpu scale {}\n",
-        p.topology, p.link_model, p.time_scale, p.transfer, p.subscreens, p.adaptive, p.cpu_scale
+        "{}\nlink model {:?} at time scale {}, transfer {}, subscreens {}, adaptive {}, cpu scale {}, {}\n",
+        p.topology,
+        p.link_model,
+        p.time_scale,
+        p.transfer,
+        p.subscreens,
+        p.adaptive,
+        p.cpu_scale,
+        at_work_text(&p.machine_limits)
     );
     for note in &p.notes {
         out += &format!("note: {note}\n");
@@ -541,6 +665,95 @@ mod tests {
         assert_eq!(on(path, Some(0.25)), (LinkModelKind::None, 0.25));
         assert_eq!(on("grid:1x1x2", None), (LinkModelKind::Paper, 0.1));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A render whose four nodes shared a machine that let one work at once (the stats'
+    /// `machine_limits`) is replayed so: one node renders the four subscreens one after
+    /// another. The limit was ignored, every node given work, a quarter of the time.
+    #[test]
+    fn the_recorded_limit_of_nodes_at_work_is_replayed() {
+        let limited = stats().replace(
+            r#""adaptive": false,"#,
+            r#""adaptive": false, "at_work": "auto",
+               "machine_limits": [{"nodes": [2, 3, 4, 5], "at_work": 1}],"#,
+        );
+        let p = predict(&limited, &Overrides::default()).unwrap();
+        assert!(
+            p.predicted_s > 0.4 && p.predicted_s < 0.45,
+            "four subscreens of 0.1 s one after another: {}",
+            p.predicted_s
+        );
+        let working: Vec<u32> = p.result.nodes.iter().map(|n| n.subscreens).collect();
+        assert_eq!(working, [4, 0, 0, 0]);
+        assert!(p.notes.is_empty(), "{:?}", p.notes);
+        let text = summary(&p);
+        assert!(text.contains("1 of the 4 on one machine"), "{text}");
+    }
+
+    /// Another machine keeps no limit of the recorded one's, and says so; `--at-work` sets
+    /// one; a changed setting that `--at-work auto` depends on keeps it, and says so.
+    #[test]
+    fn another_machine_or_at_work_sets_the_limit() {
+        let limited = stats().replace(
+            r#""adaptive": false,"#,
+            r#""adaptive": false, "at_work": "auto",
+               "machine_limits": [{"nodes": [2, 3, 4, 5], "at_work": 1}],"#,
+        );
+        let elsewhere = Overrides {
+            topology: Some("tiny".into()),
+            ..Overrides::default()
+        };
+        let p = predict(&limited, &elsewhere).unwrap();
+        assert!(p.predicted_s < 0.11, "{}", p.predicted_s);
+        assert!(p.notes[0].contains("of its own machine"), "{:?}", p.notes);
+        for (at_work, nodes) in [(AtWork::Count(2), 2), (AtWork::All, 4)] {
+            let set = Overrides {
+                at_work: Some(at_work),
+                ..Overrides::default()
+            };
+            let p = predict(&limited, &set).unwrap();
+            let working = p.result.nodes.iter().filter(|n| n.subscreens > 0).count();
+            assert_eq!(working, nodes, "{at_work}");
+            assert_eq!(p.measured_s, None);
+        }
+        // A setting --at-work auto depends on, changed: the limit is kept, and said to be.
+        let paper = Overrides {
+            link: Some(LinkModelKind::None),
+            ..Overrides::default()
+        };
+        let p = predict(&limited, &paper).unwrap();
+        assert_eq!(p.machine_limits.len(), 1);
+        assert!(p.notes[0].contains("is kept"), "{:?}", p.notes);
+        let cpus = Overrides {
+            at_work: Some(AtWork::Cpus),
+            ..Overrides::default()
+        };
+        let e = predict(&limited, &cpus).unwrap_err();
+        assert!(e.to_string().contains("knows no machine's CPUs"), "{e}");
+    }
+
+    /// Render nodes that rendered twice as long by the clock as on the CPU shared their
+    /// CPUs with something the replay cannot know of: said, with the scale that stands for it.
+    #[test]
+    fn cpus_shared_with_other_processes_are_noted() {
+        let nodes = |busy: f64| {
+            stats().replace(
+                r#""adaptive": false,"#,
+                &format!(
+                    r#""adaptive": false, "nodes": [{{"role": "Render", "busy_s": {busy}}},
+                       {{"role": "Fork", "busy_s": 5.0}}],"#
+                ),
+            )
+        };
+        let p = predict(&nodes(0.8), &Overrides::default()).unwrap();
+        assert_eq!(p.notes.len(), 1, "{:?}", p.notes);
+        assert!(
+            p.notes[0].contains("0.800 s by the clock but 0.400 s on the CPU (2.00x)"),
+            "{:?}",
+            p.notes
+        );
+        let p = predict(&nodes(0.41), &Overrides::default()).unwrap();
+        assert!(p.notes.is_empty(), "{:?}", p.notes);
     }
 
     #[test]

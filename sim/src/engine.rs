@@ -128,6 +128,13 @@ struct RenderNode {
     cache: Option<Lru>,
     active: Option<Active>,
     finished: Option<u32>,
+    /// Which of the config's machines it shares, if any.
+    machine: Option<usize>,
+    /// Whether it holds a subscreen, as the host counts it: from the answer to its next
+    /// request (a node here asks only once it has finished, so it holds at most one).
+    holding: bool,
+    /// Whether it has been handed work before: such nodes are served first.
+    rendered_before: bool,
     phase: Phase,
     since: u64,
     spent: [u64; 3],
@@ -167,6 +174,10 @@ struct Sim<'a> {
     held: Vec<Held>,
     waiting_list: VecDeque<u32>,
     parked: VecDeque<usize>,
+    /// Per machine of the config, how many of its nodes it lets hold work at once, and how
+    /// many hold some.
+    limits: Vec<usize>,
+    at_work: Vec<usize>,
     rows_missing: u64,
     split: u32,
     chunk_bytes: &'a [u64],
@@ -228,6 +239,9 @@ pub(crate) fn run(work: &Workload, config: &SimConfig, model: Model) -> SimResul
                 },
                 active: None,
                 finished: None,
+                machine: config.machines.iter().position(|m| m.nodes.contains(&id)),
+                holding: false,
+                rendered_before: false,
                 phase: Phase::Idle,
                 since: 0,
                 spent: [0; 3],
@@ -257,6 +271,8 @@ pub(crate) fn run(work: &Workload, config: &SimConfig, model: Model) -> SimResul
         rows_missing: subscreens.iter().map(|s| s.rect.height as u64).sum(),
         subscreens,
         parked: VecDeque::new(),
+        limits: config.machines.iter().map(|m| m.at_work).collect(),
+        at_work: vec![0; config.machines.len()],
         split: 0,
         chunk_bytes: &work.chunk_bytes,
         tile_bytes: &work.tile_bytes,
@@ -376,7 +392,7 @@ impl Sim<'_> {
                     if self.rows_missing == 0 {
                         return now;
                     }
-                    if self.config.adaptive && !self.parked.is_empty() {
+                    if self.config.adaptive && self.idle_may_work() {
                         self.ask_give_back(now);
                     }
                 }
@@ -542,19 +558,51 @@ impl Sim<'_> {
         {
             self.held[f as usize].giving_back = false;
         }
+        // It asks only once it has finished: whatever it held, it holds no more.
+        let n = &mut self.nodes[node];
+        if std::mem::take(&mut n.holding)
+            && let Some(m) = n.machine
+        {
+            self.at_work[m] -= 1;
+        }
         self.parked.push_back(node);
         self.hand_out(now);
-        if self.config.adaptive && !self.parked.is_empty() {
+        if self.config.adaptive && self.idle_may_work() {
             self.ask_give_back(now);
         }
     }
 
-    /// Pairs waiting requests with queued subscreens, first asker first, in plan order.
+    /// Whether `node` may be handed work now: its machine, if it shares one, has fewer of
+    /// its nodes holding work than it lets (a node that asks holds none here).
+    fn may_work(&self, node: usize) -> bool {
+        self.nodes[node]
+            .machine
+            .is_none_or(|m| self.at_work[m] < self.limits[m])
+    }
+
+    /// Whether a node waiting for work could take some.
+    fn idle_may_work(&self) -> bool {
+        self.parked.iter().any(|&n| self.may_work(n))
+    }
+
+    /// Pairs waiting requests with queued subscreens in plan order, as the host does: of
+    /// the nodes that may work, those that rendered before first (their caches hold the
+    /// scene), then first asker first.
     fn hand_out(&mut self, now: u64) {
         while !self.waiting_list.is_empty() {
-            let Some(node) = self.parked.pop_front() else {
+            let Some(at) = (self.parked.iter())
+                .position(|&n| self.nodes[n].rendered_before && self.may_work(n))
+                .or_else(|| self.parked.iter().position(|&n| self.may_work(n)))
+            else {
                 break;
             };
+            let node = self.parked.remove(at).expect("a parked request");
+            let n = &mut self.nodes[node];
+            n.holding = true;
+            n.rendered_before = true;
+            if let Some(m) = n.machine {
+                self.at_work[m] += 1;
+            }
             let id = self.waiting_list.pop_front().expect("not empty");
             self.held[id as usize] = Held {
                 node: Some(node),
@@ -659,7 +707,7 @@ impl Sim<'_> {
             self.held[id].refused = true;
         }
         self.hand_out(now);
-        if !self.parked.is_empty() {
+        if self.idle_may_work() {
             self.ask_give_back(now);
         }
     }

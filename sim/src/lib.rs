@@ -19,9 +19,12 @@
 //!   requests (render node to its fork node), serial-link data replies, and every scan line
 //!   of pixels (render node to its fork node, which passes it to the host outside the model).
 //! * **Scheduling** (as `host::schedule`): subscreens in the host's plain order, handed to
-//!   whoever asks first; a node asks again when it has sent its last row. With `adaptive`, a
-//!   request that finds the queue empty makes the host ask the node with the most rows
-//!   still missing to give back the unbegun half of them (the render node's `give_back`).
+//!   whoever asks first, nodes that have rendered before first; a node asks again when it
+//!   has sent its last row. Render nodes sharing a machine ([`SimConfig::machines`], the
+//!   host's `--at-work` limit) are handed work only while fewer than the machine lets work
+//!   hold some. With `adaptive`, a request that finds the queue empty makes the host ask the
+//!   node with the most rows still missing to give back the unbegun half of them (the
+//!   render node's `give_back`), if a node waiting could take them.
 //! * **Data** (as `fork-node` and `render-node`): items placed round-robin on the fork nodes;
 //!   batch transfer sends every item to every render node by DMA before it starts (each
 //!   card's DMA bus one at a time, items from other cards over the G-bus first); demand
@@ -51,6 +54,7 @@ use fabric::{
 use protocol::NodeId;
 use serde::{Deserialize, Serialize};
 
+pub use host::schedule::Machine;
 pub use network::hops;
 pub use workload::{Band, Subscreen, Workload, WorkloadError};
 
@@ -104,6 +108,11 @@ pub struct SimConfig {
     pub cpu_scale: f64,
     /// Real costs the link, DMA and G-bus models leave out; zero models none.
     pub overheads: Overheads,
+    /// Render nodes that share a machine, and how many of them the host lets hold work at
+    /// once (`host::schedule::machines`, from `--at-work`); a render node on none has a
+    /// processor of its own, as the paper's did. A recorded render's are in its stats'
+    /// `machine_limits`.
+    pub machines: Vec<Machine>,
 }
 
 /// What a real render pays beyond the modelled hardware: the processes' own work. The
@@ -143,6 +152,7 @@ impl SimConfig {
             adaptive: false,
             cpu_scale: 1.0,
             overheads: Overheads::default(),
+            machines: Vec::new(),
         }
     }
 }
@@ -162,6 +172,12 @@ pub enum SimError {
         "a cache of {cache_bytes} bytes cannot hold the largest item ({largest} bytes); the real render refuses it too"
     )]
     CacheTooSmall { cache_bytes: u64, largest: u64 },
+    #[error("a machine limit names node {0}, which is not a render node of the topology")]
+    NotARenderNode(NodeId),
+    #[error("render node {0} is on two machines")]
+    TwoMachines(NodeId),
+    #[error("a machine that lets none of its render nodes work at once would never finish")]
+    NoneAtWork,
 }
 
 /// One render node's time, split three ways; they add up to the total time.
@@ -236,6 +252,22 @@ pub fn simulate(workload: &Workload, config: &SimConfig) -> Result<SimResult, Si
                 cache_bytes,
                 largest,
             });
+        }
+    }
+    let mut on_machine = std::collections::HashSet::new();
+    for m in &config.machines {
+        if m.at_work == 0 {
+            return Err(SimError::NoneAtWork);
+        }
+        for &node in &m.nodes {
+            if (node as usize) >= config.topology.len()
+                || config.topology.role(node) != protocol::Role::Render
+            {
+                return Err(SimError::NotARenderNode(node));
+            }
+            if !on_machine.insert(node) {
+                return Err(SimError::TwoMachines(node));
+            }
         }
     }
     let render_nodes = config.topology.render_nodes().len() as u32;

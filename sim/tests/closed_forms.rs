@@ -89,6 +89,39 @@ fn equal_subscreens_without_transfer_costs_take_a_nth_of_one_node() {
 /// One packet of `wire` bytes crossing one link, in ns, as the paper's formula extends to
 /// packets of other sizes: 234 us along a column, 300 us along a row, and the bytes past 84
 /// at 1.74 bytes per us.
+/// Render nodes sharing a machine that lets two of them work at once: two render all the
+/// subscreens, the others wait, as the host's `--at-work` has it; a node of no machine works
+/// beside them.
+#[test]
+fn a_machine_lets_only_its_number_of_nodes_work_at_once() {
+    let w = strips(8, 32, 2, 0.25, vec![], |_| vec![]);
+    let t = Topology::preset("tiny").unwrap();
+    let nodes = t.render_nodes();
+    let limited = |on_machine: &[protocol::NodeId], at_work| SimConfig {
+        machines: vec![sim::Machine {
+            nodes: on_machine.to_vec(),
+            at_work,
+        }],
+        ..config("tiny")
+    };
+    let r = simulate(&w, &limited(&nodes, 2)).unwrap();
+    assert_eq!(r.total_ns, 4_000_000_000, "8 s of work on two nodes");
+    let working: Vec<u32> = r.nodes.iter().map(|n| n.subscreens).collect();
+    assert_eq!(working, [16, 16, 0, 0], "the first two to ask keep working");
+    each_node_adds_up(&r);
+    let r = simulate(&w, &limited(&nodes[..3], 1)).unwrap();
+    assert_eq!(r.total_ns, 4_000_000_000, "one of three, and the fourth");
+    assert_eq!(r.nodes.iter().filter(|n| n.subscreens > 0).count(), 2);
+    // A limit that names no render node, a node twice, or lets none work is refused.
+    for (on_machine, at_work) in [
+        (vec![0], 1),
+        (vec![nodes[0], nodes[0]], 1),
+        (nodes.clone(), 0),
+    ] {
+        assert!(simulate(&w, &limited(&on_machine, at_work)).is_err());
+    }
+}
+
 fn hop_ns(vertical: bool, wire: usize) -> u64 {
     let base = if vertical { 234.0 } else { 300.0 };
     ((base + (wire as f64 - 84.0) / 1.74) * 1000.0).round() as u64

@@ -753,6 +753,10 @@ struct SimulateArgs {
     /// Multiplies every recorded CPU time (a slower or faster processor).
     #[arg(long)]
     cpu_scale: Option<f64>,
+    /// How many render nodes work at once: all, or a number of them [default: as the
+    /// recorded render let them, on its own machine; all on another].
+    #[arg(long)]
+    at_work: Option<host::schedule::AtWork>,
     /// Adds the real costs beyond the models (per message, before the start) read off this
     /// recorded cluster render's stats (the same file, or another render on this machine).
     #[arg(long)]
@@ -783,6 +787,7 @@ fn simulate(a: SimulateArgs) -> Result<()> {
         static_division: a.static_division,
         adaptive: a.adaptive,
         cpu_scale: a.cpu_scale,
+        at_work: a.at_work,
         overheads: match &a.overheads_from {
             Some(path) => {
                 let from = std::fs::read_to_string(path)
