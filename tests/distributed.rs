@@ -20,13 +20,6 @@ fn render(args: &[&str], out: &Path, stats: Option<&Path>) -> std::process::Outp
     run(&mut cmd)
 }
 
-fn exited(pid: u64) -> bool {
-    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
-        Err(_) => true,
-        Ok(s) => s.contains(") Z "),
-    }
-}
-
 fn helmet() -> PathBuf {
     data().join("scenes/khronos/DamagedHelmet/glTF-Binary/DamagedHelmet.glb")
 }
@@ -513,6 +506,51 @@ fn interrupting_the_host_stops_every_process() {
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
         assert!(exited(k), "node process {k} outlived the host");
+    }
+}
+
+/// A spawning host interrupted while its nodes join stops at once and leaves no node behind
+/// (it waited for the join timeout). The nodes are held (SIGSTOP) as they start, so the
+/// cluster cannot form before the interrupt however fast the machine.
+#[test]
+fn interrupting_a_spawning_host_while_its_nodes_join_stops_every_process() {
+    use std::time::{Duration, Instant};
+    let dir = scratch("ctrl-c-forming");
+    let out = dir.join("never.png");
+    let mut host = Logged::start(
+        host()
+            .args(["--log", "info", "render", "--quiet", "--spawn", "tiny"])
+            .args(["--join-timeout", "120", "-o"])
+            .arg(&out),
+    );
+    let mut held = Held(Vec::new());
+    let until = Instant::now() + Duration::from_secs(30);
+    while held.0.len() < 5 && Instant::now() < until {
+        for kid in children_of(host.pid()) {
+            if node_role(kid).is_some() && !held.0.contains(&kid) {
+                held.hold(kid);
+            }
+        }
+    }
+    assert_eq!(held.0.len(), 5, "the host should have started 5 nodes");
+    assert!(
+        host.wait_for("subscreens on", Duration::from_secs(1))
+            .is_none(),
+        "the cluster formed before its nodes were held: {}",
+        host.log()
+    );
+    signal(host.pid() as u64, rustix::process::Signal::INT);
+    let code = host.wait_exit(Duration::from_secs(20));
+    assert_eq!(code, Some(Some(130)), "{}", host.log());
+    assert!(
+        host.log()
+            .contains("interrupted; the cluster was stopped and no image was written"),
+        "{}",
+        host.log()
+    );
+    assert!(!out.exists(), "no image after an interrupt");
+    for &kid in &held.0 {
+        assert!(exited(kid), "node process {kid} outlived the host");
     }
 }
 

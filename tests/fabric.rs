@@ -10,6 +10,7 @@ use std::{
     net::TcpStream,
     path::Path,
     process::Command,
+    sync::atomic::AtomicBool,
     time::Duration,
 };
 
@@ -134,7 +135,9 @@ async fn tiny_and_magg_register_route_and_stop() {
     for preset in ["tiny", "magg"] {
         let cfg = config(preset, ClusterMode::Spawn);
         let t = cfg.topology.clone();
-        let mut cluster = start(&cfg, &|_, _| {}).await.unwrap();
+        let mut cluster = start(&cfg, &|_, _| {}, &AtomicBool::new(false))
+            .await
+            .unwrap();
         assert_eq!(cluster.formed.members.len(), t.len() - 1);
         let pids = cluster.local.as_ref().unwrap().pids();
         check_routing(&mut cluster, &t, 100).await;
@@ -224,7 +227,9 @@ async fn wrong_secret_and_wrong_version_are_refused() {
         buf
     });
     let nodes = start_nodes(&t, &addr, "fabric test secret");
-    let cluster = start_on(listener, &cfg, &|_, _| {}).await.unwrap();
+    let cluster = start_on(listener, &cfg, &|_, _| {}, &AtomicBool::new(false))
+        .await
+        .unwrap();
     let out = tokio::task::spawn_blocking(move || impostor.wait_with_output().unwrap())
         .await
         .unwrap();
@@ -255,7 +260,9 @@ async fn wrong_secret_and_wrong_version_are_refused() {
 async fn hostile_bytes_on_every_port_leave_the_cluster_working() {
     let cfg = config("tiny", ClusterMode::Spawn);
     let t = cfg.topology.clone();
-    let mut cluster = start(&cfg, &|_, _| {}).await.unwrap();
+    let mut cluster = start(&cfg, &|_, _| {}, &AtomicBool::new(false))
+        .await
+        .unwrap();
     let addrs: Vec<String> = cluster
         .formed
         .members

@@ -586,3 +586,63 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
     );
     same_bytes(&out, &in_process(&dir, &args));
 }
+
+/// Ctrl-C or SIGTERM while a host waits for its nodes to join ends the wait at once, with
+/// the signal's exit status, and the nodes that had joined stop cleanly at once. It waited
+/// for the join timeout and failed with status 1; its nodes saw only the connection end and
+/// said they lost the host.
+#[test]
+fn a_host_stopped_while_its_nodes_join_stops_those_that_joined() {
+    let _serial = serial();
+    for (stop, name, code) in [
+        (rustix::process::Signal::INT, "SIGINT", 130),
+        (rustix::process::Signal::TERM, "SIGTERM", 143),
+    ] {
+        let dir = scratch(&format!("stopped-forming-{code}"));
+        let mut host = Logged::start(
+            host()
+                .args(["--log", "info", "render", "--quiet", "--topology", "tiny"])
+                .args(["--listen", "127.0.0.1:0", "--join-timeout", "120", "-o"])
+                .arg(dir.join("never.png"))
+                .arg(cornell())
+                .env("MAGG_SECRET", SECRET),
+        );
+        let addr = host.join_address();
+        let mut node = Logged::start(
+            Command::new(bin("magg-render-node"))
+                .args(["--log", "info", "--join", &addr, "--listen", "127.0.0.1:0"])
+                .env("MAGG_SECRET", SECRET),
+        );
+        host.wait_for(" joined from ", Duration::from_secs(30))
+            .unwrap_or_else(|| panic!("the node did not join: {}", host.log()));
+        signal(host.pid() as u64, stop);
+        assert_eq!(
+            host.wait_exit(Duration::from_secs(20)),
+            Some(Some(code)),
+            "{name}: {}",
+            host.log()
+        );
+        let log = host.log();
+        assert!(
+            log.contains(&format!("{name}: stopping the cluster")),
+            "{log}"
+        );
+        assert!(
+            log.contains("interrupted; the cluster was stopped and no image was written"),
+            "{log}"
+        );
+        assert_eq!(
+            node.wait_exit(Duration::from_secs(10)),
+            Some(Some(0)),
+            "{name}: {}",
+            node.log()
+        );
+        assert!(
+            node.log().contains("stopping: the host was stopped"),
+            "{name}: {}",
+            node.log()
+        );
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().collect();
+        assert!(left.is_empty(), "{name} left files: {left:?}");
+    }
+}

@@ -85,6 +85,10 @@ pub enum ClusterError {
     NodeFailed { node: NodeId, message: String },
     #[error("node {node} left while the cluster was forming")]
     NodeLeft { node: NodeId },
+    #[error("stopped before the cluster formed")]
+    Stopped,
+    #[error("the host stopped the cluster before it formed: {reason}")]
+    StoppedByHost { node: NodeId, reason: String },
 }
 
 /// What formation was still waiting for when it timed out.
@@ -241,8 +245,15 @@ struct Announce<'a> {
     each_join: bool,
 }
 
-/// Host side: waits until the topology is filled and every node's links are up. The
-/// [`Registry`] decides; this loop only carries its decisions to and from the sockets.
+/// How long the host, giving up on a cluster that will not form, waits for the nodes that
+/// had joined to read why and hang up. They exit as soon as they read it; this bounds only
+/// the wait for one that is hung.
+const DISMISS_WAIT: Duration = Duration::from_secs(2);
+
+/// Host side: waits until the topology is filled and every node's links are up, or until
+/// `stop` resolves (`ClusterError::Stopped`). The [`Registry`] decides; this loop only
+/// carries its decisions to and from the sockets. Nodes that joined a cluster that does not
+/// form are told why, and have read it, before this returns.
 pub async fn form(
     listener: TcpListener,
     topology: Topology,
@@ -251,6 +262,7 @@ pub async fn form(
     timeout: Duration,
     progress: &(dyn Fn(usize, usize) + Sync),
     announce_joins: bool,
+    stop: impl std::future::Future<Output = ()>,
 ) -> Result<Formed, ClusterError> {
     let topology = Arc::new(topology);
     let (fabric, mut inbox) = Fabric::new(
@@ -262,12 +274,54 @@ pub async fn form(
     );
     fabric.serve(listener);
     let mut registry = Registry::new(topology.clone(), boot_id(), Instant::now(), timeout);
-    let deadline = tokio::time::Instant::from_std(registry.deadline());
-    let (registrations_tx, mut registrations) = mpsc::unbounded_channel();
     let announce = Announce {
         progress,
         each_join: announce_joins,
     };
+    let gathered = tokio::select! {
+        gathered = gather(&fabric, &mut inbox, &mut registry, &announce) => gathered,
+        () = stop => Err(ClusterError::Stopped),
+    };
+    if let Err(e) = gathered {
+        let reason = match &e {
+            ClusterError::Stopped => "the host was stopped".to_string(),
+            e => format!("the cluster did not form: {e}"),
+        };
+        dismiss(&fabric, &registry, reason).await;
+        return Err(e);
+    }
+    tell_members(&fabric, &registry, &Message::Go);
+    Ok(Formed {
+        fabric,
+        inbox,
+        members: registry.into_members(),
+    })
+}
+
+/// Tells every node that joined why the cluster will not form, and waits (at most
+/// [`DISMISS_WAIT`]) until each has hung up: this process may exit right after, and a node
+/// that saw only the connection end would report the host lost (after its own timeout, if
+/// the process lingered).
+async fn dismiss(fabric: &Fabric, registry: &Registry, reason: String) {
+    tell_members(fabric, registry, &Message::Shutdown { reason });
+    let until = tokio::time::Instant::now() + DISMISS_WAIT;
+    while registry.members().any(|m| fabric.has_control(m.node))
+        && tokio::time::Instant::now() < until
+    {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    fabric.hang_up();
+}
+
+/// Registers nodes until the topology is filled and every link is up, the host's too.
+async fn gather(
+    fabric: &Fabric,
+    inbox: &mut mpsc::UnboundedReceiver<Delivery>,
+    registry: &mut Registry,
+    announce: &Announce<'_>,
+) -> Result<(), ClusterError> {
+    let deadline = tokio::time::Instant::from_std(registry.deadline());
+    let (registrations_tx, mut registrations) = mpsc::unbounded_channel();
     while !registry.is_formed() {
         let event = tokio::select! {
             d = inbox.recv() => Event::Delivery(d),
@@ -275,13 +329,7 @@ pub async fn form(
             _ = tokio::time::sleep_until(deadline) => Event::Timeout,
         };
         match event {
-            Event::Timeout => {
-                if let Err(e) = registry.check_time(Instant::now()) {
-                    let reason = "the cluster did not form in time".to_string();
-                    tell_members(&fabric, &registry, &Message::Shutdown { reason });
-                    return Err(e);
-                }
-            }
+            Event::Timeout => registry.check_time(Instant::now())?,
             Event::Delivery(None) => return Err(ClusterError::FabricStopped),
             Event::Delivery(Some(Delivery::Incoming {
                 identity,
@@ -295,7 +343,7 @@ pub async fn form(
             Event::Registration(None) => {}
             Event::Registration(Some((message, halves))) => {
                 if let Some(registration) = Registration::from_message(message) {
-                    register(&fabric, &mut registry, registration, halves, &announce).await?;
+                    register(fabric, registry, registration, halves, announce).await?;
                 }
             }
             Event::Delivery(Some(Delivery::Frame {
@@ -321,10 +369,11 @@ pub async fn form(
             Event::Delivery(Some(_)) => {}
         }
     }
-    let want_direct = expected_direct(&topology, 0).len();
+    let topology = fabric.topology();
+    let want_direct = expected_direct(topology, 0).len();
     let want_mesh = topology.neighbors(0).len();
     let until = tokio::time::Instant::now() + HOST_LINKS_WAIT;
-    wait_for_links(&fabric, want_mesh, want_direct, until)
+    wait_for_links(fabric, want_mesh, want_direct, until)
         .await
         .map_err(|(mesh, direct)| ClusterError::Timeout {
             seconds: HOST_LINKS_WAIT.as_secs(),
@@ -334,13 +383,7 @@ pub async fn form(
                 mesh,
                 want_mesh,
             },
-        })?;
-    tell_members(&fabric, &registry, &Message::Go);
-    Ok(Formed {
-        fabric,
-        inbox,
-        members: registry.into_members(),
-    })
+        })
 }
 
 enum Event {
@@ -517,6 +560,7 @@ pub async fn join(cfg: JoinConfig) -> Result<Joined, ClusterError> {
 
     let mut early = Vec::new();
     let mut host = HostWait {
+        node,
         inbox: &mut inbox,
         early: &mut early,
         deadline,
@@ -633,6 +677,7 @@ async fn register_with_host(
 
 /// A joining node's wait for the host's next word.
 struct HostWait<'a> {
+    node: NodeId,
     inbox: &'a mut mpsc::UnboundedReceiver<Delivery>,
     /// What arrives meanwhile for the role code (frames from peers that are ready first).
     early: &'a mut Vec<Delivery>,
@@ -642,7 +687,8 @@ struct HostWait<'a> {
 
 impl HostWait<'_> {
     /// Waits for the host's control message that `pick` takes. A shutdown from the host
-    /// means the cluster will not form; other control messages from it are dropped.
+    /// means the cluster will not form (`ClusterError::StoppedByHost`); other control
+    /// messages from it are dropped.
     async fn until<T>(
         &mut self,
         waiting_for: Waiting,
@@ -660,7 +706,12 @@ impl HostWait<'_> {
                     frame,
                     via: Via::Control(0),
                 }) => match frame.message() {
-                    Ok(Message::Shutdown { reason }) => return Err(ClusterError::Refused(reason)),
+                    Ok(Message::Shutdown { reason }) => {
+                        return Err(ClusterError::StoppedByHost {
+                            node: self.node,
+                            reason,
+                        });
+                    }
                     Ok(message) => {
                         if let Some(picked) = pick(message) {
                             return Ok(picked);

@@ -37,16 +37,26 @@ pub trait RoleHandler {
 }
 
 /// Joins the cluster, builds the role's handler from the joined fabric, and runs it until
-/// the host says stop (`Ok`) or goes away (`Err(RoleError::HostLost)`).
+/// the host says stop (`Ok`, also before the cluster formed) or goes away
+/// (`Err(RoleError::HostLost)`).
 pub async fn run_role<H: RoleHandler>(
     config: JoinConfig,
     make_handler: impl FnOnce(&Fabric) -> H,
 ) -> Result<(), RoleError> {
-    let joined = join(config).await?;
+    let name = H::NAME;
+    let joined = match join(config).await {
+        Ok(joined) => joined,
+        // The host waits for this node to hang up before it exits, so there is no leaving
+        // to do: the stop is obeyed as one after the cluster formed is.
+        Err(ClusterError::StoppedByHost { node, reason }) => {
+            tracing::info!("{name} {node} stopping: {reason}");
+            return Ok(());
+        }
+        Err(e) => return Err(e.into()),
+    };
     let fabric = joined.fabric.clone();
     let mut inbox = joined.inbox;
     let mut handler = make_handler(&fabric);
-    let name = H::NAME;
     tracing::info!("{name} {} ready", fabric.me());
     // What arrived before the host said go comes first, in the order it arrived.
     let mut early = std::collections::VecDeque::from(joined.early);

@@ -38,6 +38,7 @@ async fn tiny_cluster_forms_and_routes() {
         Duration::from_secs(20),
         &|_, _| {},
         false,
+        std::future::pending(),
     )
     .await;
     let mut nodes = Vec::new();

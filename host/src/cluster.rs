@@ -1,7 +1,11 @@
 //! Starting a cluster from the host: spawning it locally, or waiting for nodes started by
 //! hand (or by containers) to join, then stopping it cleanly.
 
-use std::{path::PathBuf, time::Duration};
+use std::{
+    path::PathBuf,
+    sync::atomic::{AtomicBool, Ordering},
+    time::Duration,
+};
 
 use fabric::{
     Topology,
@@ -74,6 +78,8 @@ pub enum StartError {
     NodeExited(String),
     #[error("the cluster did not form: {0}")]
     Form(#[from] fabric::cluster::ClusterError),
+    #[error("stopped before the cluster formed")]
+    Stopped,
 }
 
 pub struct Cluster {
@@ -115,19 +121,28 @@ fn write_secret_file(path: &std::path::Path, secret: &Secret) -> std::io::Result
         .write_all(secret.expose().as_bytes())
 }
 
+/// Binds the host's port and forms the cluster on it; see [`start_on`].
 pub async fn start(
     config: &ClusterConfig,
     progress: &(dyn Fn(usize, usize) + Sync),
+    cancel: &AtomicBool,
 ) -> Result<Cluster, StartError> {
     let listener = bind(config).await?;
-    start_on(listener, config, progress).await
+    start_on(listener, config, progress, cancel).await
 }
 
+/// How often a start looks at what the formation cannot see itself: whether `cancel` was
+/// set, whether a spawned node exited.
+const WATCH_EVERY: Duration = Duration::from_millis(100);
+
 /// Forms the cluster on an already bound port (spawning the nodes first in spawn mode).
+/// Setting `cancel` ends the wait (`StartError::Stopped`): the nodes that joined are told to
+/// stop, and spawned ones that have not exited by then are killed.
 pub async fn start_on(
     listener: TcpListener,
     config: &ClusterConfig,
     progress: &(dyn Fn(usize, usize) + Sync),
+    cancel: &AtomicBool,
 ) -> Result<Cluster, StartError> {
     let bound = listener.local_addr().map_err(|source| StartError::Listen {
         addr: "?".into(),
@@ -165,13 +180,28 @@ pub async fn start_on(
         config.join_timeout,
         progress,
         matches!(config.mode, ClusterMode::Listen(_)),
+        async {
+            while !cancel.load(Ordering::Relaxed) {
+                tokio::time::sleep(WATCH_EVERY).await;
+            }
+        },
     );
     tokio::pin!(forming);
-    // A spawned node that cannot run exits at once; say so then, not at the join timeout.
     let formed = loop {
         tokio::select! {
-            formed = &mut forming => break formed?,
-            _ = tokio::time::sleep(Duration::from_millis(100)) => {
+            formed = &mut forming => match formed {
+                Ok(formed) => break formed,
+                // Ctrl-C in a terminal reaches the spawned nodes too, which exit at once:
+                // what their exits did to the formation is the stop, not a failure.
+                Err(_) if cancel.load(Ordering::Relaxed) => return Err(StartError::Stopped),
+                Err(e) => return Err(e.into()),
+            },
+            _ = tokio::time::sleep(WATCH_EVERY) => {
+                if cancel.load(Ordering::Relaxed) {
+                    continue;
+                }
+                // A spawned node that cannot run exits at once; say so then, not at the
+                // join timeout.
                 if let Some(why) = local.as_mut().and_then(LocalCluster::exited_early) {
                     return Err(StartError::NodeExited(why));
                 }
@@ -238,7 +268,7 @@ mod tests {
     }
 
     async fn start_error(config: &ClusterConfig) -> String {
-        match start(config, &|_, _| {}).await {
+        match start(config, &|_, _| {}, &AtomicBool::new(false)).await {
             Ok(_) => panic!("the cluster should not form"),
             Err(e) => e.to_string(),
         }

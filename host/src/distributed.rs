@@ -24,7 +24,7 @@ use serde::Serialize;
 
 use crate::{
     checkpoint::{self, Checkpoint, CheckpointKey},
-    cluster::{Cluster, ClusterConfig, start},
+    cluster::{Cluster, ClusterConfig, StartError, start},
     inprocess::{RenderConfig, RenderError, check_settings},
     progress::Progress,
     recovery::HostCopy,
@@ -281,7 +281,14 @@ pub async fn render_on_cluster(
         }
         read.map_err(|e| ClusterRenderError::from(RenderError::Load(e)))
     };
-    let starting = start(&config.cluster, &|_, _| {});
+    let starting = async {
+        start(&config.cluster, &|_, _| {}, cancel)
+            .await
+            .map_err(|e| match e {
+                StartError::Stopped => ClusterRenderError::Interrupted,
+                e => e.into(),
+            })
+    };
     tokio::pin!(starting, read);
     let (mut cluster, scene) = tokio::select! {
         // A scene that cannot be read ends the start at once (nodes started by hand may be
@@ -303,10 +310,10 @@ pub async fn render_on_cluster(
     };
     let result = drive(config, &mut cluster, scene, cancel, t0).await;
     let clean = cluster
-        .shutdown(if result.is_ok() {
-            "render done"
-        } else {
-            "render failed"
+        .shutdown(match &result {
+            Ok(_) => "render done",
+            Err(ClusterRenderError::Interrupted) => "the host was stopped",
+            Err(_) => "render failed",
         })
         .await;
     if !clean {

@@ -7,7 +7,9 @@
 //! with no delay model, the raw cost of the fabric: one hop's round trip and throughput on
 //! loopback.
 
-use std::{collections::HashMap, io::Write, path::PathBuf, time::Duration};
+use std::{
+    collections::HashMap, io::Write, path::PathBuf, sync::atomic::AtomicBool, time::Duration,
+};
 
 use fabric::{Delivery, Topology, Via, clock::now_ns, model::LinkModelKind};
 use protocol::{Message, NodeId, Transfer};
@@ -197,7 +199,7 @@ pub async fn links(
         .with_model(Some(LinkModelKind::Paper), None);
     let layout = MeshLayout::new(paper.topology.clone());
     progress(&format!("starting {}", layout.topology.summary()));
-    let mut cluster = start(&paper, &|_, _| {}).await?;
+    let mut cluster = start(&paper, &|_, _| {}, &AtomicBool::new(false)).await?;
     progress("one-packet times across the mesh");
     let one_way = one_packet_times(&mut cluster, &layout, config.probes).await?;
     let transfers = demand_transfers(&mut cluster, &layout, config, progress).await?;
@@ -332,7 +334,7 @@ async fn raw_fabric(config: &LinksConfig) -> Result<RawFabric, ExperimentError> 
         .clone()
         .with_model(Some(LinkModelKind::None), Some(1.0));
     raw_cfg.topology = Topology::preset("tiny")?;
-    let mut raw_cluster = start(&raw_cfg, &|_, _| {}).await?;
+    let mut raw_cluster = start(&raw_cfg, &|_, _| {}, &AtomicBool::new(false)).await?;
     let rt = &raw_cfg.topology;
     let (a, b) = (
         node_at(rt, 0, 0).unwrap_or(2),

@@ -88,6 +88,55 @@ pub fn children_of(pid: u32) -> Vec<u64> {
     out
 }
 
+/// Whether process `pid` has ended (gone, or a zombie its parent has not reaped).
+pub fn exited(pid: u64) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Err(_) => true,
+        Ok(s) => s.contains(") Z "),
+    }
+}
+
+/// Sends `signal` to process `pid`.
+pub fn signal(pid: u64, signal: rustix::process::Signal) {
+    let _ = rustix::process::kill_process(
+        rustix::process::Pid::from_raw(pid as i32).expect("a process id"),
+        signal,
+    );
+}
+
+/// Processes a test stopped (SIGSTOP) to play hung nodes: killed when it ends, pass or fail,
+/// since a stopped process ignores the SIGTERM its parent's death sends it.
+pub struct Held(pub Vec<u64>);
+
+impl Held {
+    pub fn hold(&mut self, pid: u64) {
+        signal(pid, rustix::process::Signal::STOP);
+        self.0.push(pid);
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        for &pid in &self.0 {
+            if !exited(pid) {
+                signal(pid, rustix::process::Signal::KILL);
+            }
+        }
+    }
+}
+
+/// The node role process `pid` runs (a spawning host runs its own executable as each node:
+/// `magg-host render-node`), once it runs it: `None` for other processes, and for a child
+/// still between its fork and its exec (stopping that one would stop the host, which waits
+/// for the exec).
+pub fn node_role(pid: u64) -> Option<&'static str> {
+    let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+    let argument = cmdline.split(|&b| b == 0).nth(1)?;
+    ["fork-node", "render-node"]
+        .into_iter()
+        .find(|role| role.as_bytes() == argument)
+}
+
 /// One cluster at a time within a test binary: tests that time how fast faults are noticed,
 /// or start dozens of processes, would blur each other on two cores.
 pub fn serial() -> std::sync::MutexGuard<'static, ()> {
