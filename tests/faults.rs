@@ -561,19 +561,8 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
     );
     host.wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
         .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
-    let render_child = children_of(host.pid())
-        .into_iter()
-        .find(|&p| {
-            // A spawning host runs its own executable as each node: `magg-host render-node`.
-            std::fs::read(format!("/proc/{p}/cmdline"))
-                .map(|c| c.split(|&b| b == 0).nth(1) == Some(b"render-node".as_slice()))
-                .unwrap_or(false)
-        })
-        .expect("a render node child");
-    let _ = rustix::process::kill_process(
-        rustix::process::Pid::from_raw(render_child as i32).unwrap(),
-        rustix::process::Signal::KILL,
-    );
+    let render_child = render_node_child(host.pid()).expect("a render node child");
+    signal(render_child, rustix::process::Signal::KILL);
     let line = host
         .wait_for("lost render node", Duration::from_secs(10))
         .unwrap_or_else(|| panic!("{}", host.log()));
@@ -585,6 +574,67 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
         host.log()
     );
     same_bytes(&out, &in_process(&dir, &args));
+}
+
+/// A spawned render node that hangs (SIGSTOP) mid-render is declared lost after its silence,
+/// and once the image is written the host kills it and exits: it waited 10 s for the lost
+/// node to obey the shutdown, then killed it and said "some nodes did not exit when told".
+#[test]
+fn a_hung_child_of_a_spawning_host_does_not_delay_its_exit() {
+    let _serial = serial();
+    let dir = scratch("fault-spawned-hung");
+    let out = dir.join("cluster.png");
+    let mut host = Logged::start(
+        host()
+            .args([
+                "--log",
+                "info,magg::event=debug",
+                "render",
+                "--quiet",
+                "--spawn",
+                "tiny",
+                // Every render node holds work when it is stopped, so the image waits for
+                // its loss.
+                "--at-work",
+                "all",
+            ])
+            .args(long_render())
+            .arg("-o")
+            .arg(&out),
+    );
+    host.wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
+        .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
+    let mut held = Held(Vec::new());
+    let hung = render_node_child(host.pid()).expect("a render node child");
+    held.hold(hung);
+    let line = host
+        .wait_for("lost render node", Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("the hung node was not declared lost: {}", host.log()));
+    assert!(line.contains(&format!("pid {hung}")), "{line}");
+    let until = Instant::now() + Duration::from_secs(120);
+    while !out.exists() && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(out.exists(), "no image: {}", host.log());
+    let written = Instant::now();
+    assert_eq!(
+        host.wait_exit(Duration::from_secs(60)),
+        Some(Some(0)),
+        "{}",
+        host.log()
+    );
+    let exit_after_image = written.elapsed();
+    assert!(
+        exit_after_image < Duration::from_secs(6),
+        "the host exited {exit_after_image:?} after writing the image: {}",
+        host.log()
+    );
+    assert!(exited(hung), "the hung node {hung} outlived the host");
+    assert!(
+        !host.log().contains("did not exit when told"),
+        "{}",
+        host.log()
+    );
 }
 
 /// Ctrl-C or SIGTERM while a host waits for its nodes to join ends the wait at once, with

@@ -212,7 +212,9 @@ pub async fn start_on(
 }
 
 impl Cluster {
-    /// Tells every node to stop and waits for local processes to exit (killing stragglers).
+    /// Tells every node to stop and waits for local processes to exit (killing stragglers);
+    /// those of nodes declared lost are killed at once. Whether every live node exited when
+    /// told.
     pub async fn shutdown(mut self, reason: &str) -> bool {
         for m in &self.formed.members {
             let _ = self.formed.fabric.send_control(
@@ -224,11 +226,25 @@ impl Cluster {
         }
         match self.local.take() {
             Some(mut l) => {
+                // A node declared lost may be hung (stopped, swapped out) and would not obey
+                // the Shutdown: waiting for it only delayed the exit, by the whole wait below.
+                let lost: Vec<_> = self
+                    .formed
+                    .members
+                    .iter()
+                    .filter(|m| !self.formed.fabric.is_alive(m.node))
+                    .map(|m| (m.role, m.node, m.pid))
+                    .collect();
                 // Nodes wait for the host to hang up before they exit. Hanging up closes each
                 // connection once the frames queued on it (the Shutdown above) are written,
                 // so nothing needs to wait for them here.
                 self.formed.fabric.hang_up();
                 tokio::task::spawn_blocking(move || {
+                    for (role, node, pid) in lost {
+                        if l.kill_child(pid) {
+                            tracing::info!("killed lost {role} {node} (pid {pid})");
+                        }
+                    }
                     let ok = l.wait(Duration::from_secs(10));
                     l.kill();
                     ok

@@ -1307,11 +1307,13 @@ async fn collect_node_stats(cluster: &mut Cluster) -> Vec<NodeStats> {
                 Ok(Message::SubscreenRequest { .. }) => refuse_request(&f, &frame, via),
                 _ => {}
             },
-            // A node lost now cannot answer; the image is already written.
+            // A node lost now cannot answer; the image is already written. Marked dead so
+            // that the shutdown does not wait for it either.
             Ok(Some(Delivery::Lost { peer, reason, .. })) if alive.contains(&peer) => {
                 tracing::warn!(
                     "lost node {peer} after the render: {reason}; its figures are missing"
                 );
+                f.mark_dead(peer);
                 alive.retain(|&n| n != peer);
             }
             Ok(None) => break,

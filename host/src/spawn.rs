@@ -167,6 +167,17 @@ impl LocalCluster {
         fabric::shm::remove_stale(std::path::Path::new(fabric::shm::SHM_DIR));
     }
 
+    /// Kills the child whose process id is `pid`, if this cluster started one; whether it
+    /// did.
+    pub fn kill_child(&mut self, pid: u32) -> bool {
+        let Some((_, c)) = self.children.iter_mut().find(|(_, c)| c.id() == pid) else {
+            return false;
+        };
+        let _ = c.kill();
+        let _ = c.wait();
+        true
+    }
+
     /// Kills one child (for fault tests); returns its pid.
     pub fn kill_one(&mut self, index: usize) -> Option<u32> {
         let (_, c) = self.children.get_mut(index)?;

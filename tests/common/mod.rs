@@ -137,6 +137,13 @@ pub fn node_role(pid: u64) -> Option<&'static str> {
         .find(|role| role.as_bytes() == argument)
 }
 
+/// The first child of `host` that runs as a render node.
+pub fn render_node_child(host: u32) -> Option<u64> {
+    children_of(host)
+        .into_iter()
+        .find(|&p| node_role(p) == Some("render-node"))
+}
+
 /// One cluster at a time within a test binary: tests that time how fast faults are noticed,
 /// or start dozens of processes, would blur each other on two cores.
 pub fn serial() -> std::sync::MutexGuard<'static, ()> {
