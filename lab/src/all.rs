@@ -122,7 +122,7 @@ pub fn all(
             String::from_utf8_lossy(&o.stderr)
         );
         let output_path = out.join("output.txt");
-        std::fs::write(&output_path, &text).map_err(crate::LabError::folder(&output_path))?;
+        scene_io::image_io::write_atomic(&output_path, text.as_bytes())?;
         let ok = o.status.success();
         sections += &section(part, &out, &text, ok, seconds);
         results.push(PartResult {

@@ -78,11 +78,8 @@ pub enum RaysError {
     RayFileLength { path: PathBuf, len: usize },
     #[error("ray {index} of {path} is not finite or has a zero direction")]
     BadRay { path: PathBuf, index: usize },
-    #[error("writing the hit file {path}: {source}")]
-    WriteHits {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("writing the hit file: {0}")]
+    WriteHits(#[from] scene_io::ImageError),
     #[error("the render node's cache refused chunk {id}: {source}")]
     Cache {
         id: u32,
@@ -241,10 +238,7 @@ pub fn run(cfg: &RaysConfig, progress: &dyn Fn(&str)) -> Result<RaysReport, Rays
 
     if let Some(path) = &cfg.hits {
         let bytes: Vec<u8> = hits.iter().flat_map(|h| h.to_le_bytes()).collect();
-        std::fs::write(path, bytes).map_err(|source| RaysError::WriteHits {
-            path: path.clone(),
-            source,
-        })?;
+        scene_io::image_io::write_atomic(path, &bytes)?;
     }
     Ok(RaysReport {
         triangles: scene.triangle_count(),

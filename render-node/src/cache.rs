@@ -8,7 +8,7 @@
 //! pointer) and a check of the slot's recency stamp: no lock, no reference count, no clock
 //! read. That is safe because an evicted item is not freed at once: it is retired, and freed
 //! only when every reader has since announced a newer epoch (epoch-based reclamation), which
-//! a reader does between scan lines, when it holds no reference into the cache (the borrow
+//! a reader does between pixels (or batches of rays), when it holds no reference into the cache (the borrow
 //! checker sees to that: [`Reader::refresh`] takes the reader mutably).
 //!
 //! A miss blocks the rendering thread while the request travels to the fork node and the
@@ -687,7 +687,7 @@ pub struct Reader<'c> {
 
 impl Reader<'_> {
     /// Lets evicted items that this thread may have used be freed: call it where the
-    /// thread holds no reference into the cache (between scan lines).
+    /// thread holds no reference into the cache (between pixels, or batches of rays).
     pub fn refresh(&mut self) {
         self.announce();
     }

@@ -1140,8 +1140,7 @@ fn bench_rays(a: RaysArgs) -> Result<()> {
         );
     }
     if let Some(p) = a.json {
-        std::fs::write(&p, serde_json::to_vec_pretty(&r)?)
-            .with_context(|| format!("writing {}", p.display()))?;
+        scene_io::image_io::write_atomic(&p, &serde_json::to_vec_pretty(&r)?)?;
     }
     Ok(())
 }
@@ -1216,8 +1215,7 @@ fn bench_whitted(a: WhittedArgs) -> Result<()> {
         h.specular_rays_per_camera_ray
     );
     if let Some(p) = a.json {
-        std::fs::write(&p, serde_json::to_vec_pretty(&r)?)
-            .with_context(|| format!("writing {}", p.display()))?;
+        scene_io::image_io::write_atomic(&p, &serde_json::to_vec_pretty(&r)?)?;
     }
     Ok(())
 }
@@ -1306,8 +1304,7 @@ fn bench(args: BenchArgs) -> Result<()> {
         );
     }
     if let Some(p) = args.json {
-        let json = serde_json::to_vec_pretty(&r)?;
-        std::fs::write(&p, json).with_context(|| format!("writing {}", p.display()))?;
+        scene_io::image_io::write_atomic(&p, &serde_json::to_vec_pretty(&r)?)?;
     }
     Ok(())
 }
@@ -1471,7 +1468,10 @@ fn experiment(cmd: ExperimentCmd) -> Result<()> {
             };
             let r = lab::runs::overhead(&own_program()?, &render, &cluster, &dir)?;
             magg::put!("{}", lab::runs::overhead_table(&r));
-            std::fs::write(dir.join("overhead.json"), serde_json::to_vec_pretty(&r)?)?;
+            scene_io::image_io::write_atomic(
+                &dir.join("overhead.json"),
+                &serde_json::to_vec_pretty(&r)?,
+            )?;
             Ok(())
         }
         ExperimentCmd::Cache(a) => {
