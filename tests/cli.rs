@@ -369,6 +369,23 @@ fn mistakes_are_one_clear_line() {
         &png,
         "'--listen <LISTEN>' cannot be used with '--spawn <SPAWN>'",
     );
+    // A cluster's flags beside --in-process were accepted and did nothing.
+    for (flag, value) in [
+        ("--cache", "5"),
+        ("--link-model", "paper"),
+        ("--at-work", "all"),
+        ("--render-threads", "2"),
+    ] {
+        let upper = flag
+            .trim_start_matches("--")
+            .replace('-', "_")
+            .to_uppercase();
+        expect_error(
+            &["render", "--in-process", flag, value],
+            &png,
+            &format!("'--in-process' cannot be used with '{flag} <{upper}>'"),
+        );
+    }
     expect_error(
         &["render", "--in-process", "--spawn", "tiny"],
         &png,

@@ -519,7 +519,14 @@ struct RenderArgs {
     #[arg(short, long, default_value = "magg.png")]
     output: PathBuf,
     /// Render in this one process on all cores (instead of on a cluster).
-    #[arg(long, conflicts_with_all = ["spawn", "listen"])]
+    // A cluster's flags beside it were accepted and did nothing. (`--cluster-id` is left
+    // out: it may come from MAGG_CLUSTER_ID, set for every command.)
+    #[arg(long, conflicts_with_all = [
+        "spawn", "listen", "secret", "secret_file", "join_timeout", "node_log", "transfer",
+        "cache", "demand_via", "dma_transport", "subscreens", "adaptive", "order",
+        "link_model", "time_scale", "render_threads", "coherent_rays", "ask_ahead", "ask_via",
+        "at_work",
+    ])]
     in_process: bool,
     /// Continue an interrupted render from its checkpoint `OUTPUT.partial` (on any
     /// cluster, or in one process); the image is the same bytes as an uninterrupted render.
@@ -632,7 +639,8 @@ struct RenderArgs {
     /// The scene camera to use, by name (default: the first, or an automatic one).
     #[arg(long)]
     camera: Option<String>,
-    /// Rendering threads (default: all cores).
+    /// Rendering threads in one process; on a cluster, the host's threads for the
+    /// denoiser's guides (default: all cores).
     #[arg(long, value_parser = magg::thread_count)]
     threads: Option<usize>,
     /// Write render statistics as JSON.
