@@ -522,9 +522,13 @@ impl Topology {
     /// A short description: name, processes, links.
     pub fn summary(&self) -> String {
         let (f, r) = self.counts();
+        let nodes =
+            |n: usize, role: &str| format!("{n} {role} node{}", if n == 1 { "" } else { "s" });
         format!(
-            "{}: 1 host + {f} fork nodes + {r} render nodes = {} processes, {} links",
+            "{}: 1 host + {} + {} = {} processes, {} links",
             self.name,
+            nodes(f, "fork"),
+            nodes(r, "render"),
             self.nodes.len(),
             self.links.len()
         )

@@ -748,7 +748,7 @@ fn plan_job(
         config.subscreens.unwrap_or(8 * render_nodes.len() as u32),
     );
     tracing::info!(
-        "{}: {} triangles in {} chunks; {}x{} at {} spp ({}), {} subscreens on {} render nodes, {:?} transfer, cache {cache_bytes} bytes",
+        "{}: {} triangles in {} chunks; {}x{} at {} spp ({}), {} subscreens on {} render nodes, {} transfer, cache {cache_bytes} bytes",
         rc.scene,
         scene.triangle_count(),
         scene.chunks.len(),
@@ -758,7 +758,7 @@ fn plan_job(
         settings.integrator,
         subscreens.len(),
         render_nodes.len(),
-        config.transfer
+        format!("{:?}", config.transfer).to_lowercase()
     );
     let no_link_model = config.cluster.topology.model.link == fabric::model::LinkModelKind::None;
     // Only a cache smaller than the scene misses while rendering (and can make a path wait).

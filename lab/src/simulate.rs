@@ -601,7 +601,7 @@ mod tests {
         let text = summary(&p);
         assert!(text.contains("measured 0.1250 s"), "{text}");
         assert!(
-            text.contains("tiny: 1 host + 1 fork nodes + 4 render nodes"),
+            text.contains("tiny: 1 host + 1 fork node + 4 render nodes"),
             "{text}"
         );
         assert_eq!(text.lines().filter(|l| l.starts_with("   ")).count(), 4);

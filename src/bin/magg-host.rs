@@ -1335,10 +1335,11 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
         "{} subscreens ({} split off), {} transfer, cache {}% ({} bytes a node), link model {} x{}",
         s.subscreen_count,
         s.subscreens_split,
-        s.transfer,
+        // As the flags spell them (the stats keep the names they always had).
+        s.transfer.to_lowercase(),
         s.cache_percent,
         s.cache_bytes,
-        s.link_model,
+        s.link_model.to_lowercase(),
         s.time_scale
     );
     let render: Vec<&protocol::NodeStats> = s
