@@ -67,7 +67,7 @@ pub struct Topology {
 
 #[derive(Debug, thiserror::Error)]
 pub enum TopologyError {
-    #[error("topology file is not valid TOML: {0}")]
+    #[error("cannot be read as a topology (TOML of the keys README.md's Topologies lists): {0}")]
     Toml(#[source] toml::de::Error),
     #[error("undecodable topology: {0}")]
     Wire(String),
@@ -600,6 +600,25 @@ fn grid_layout(g: Grid) -> Result<(Vec<NodeSpec>, Vec<[NodeId; 2]>), TopologyErr
 mod tests {
     use super::*;
 
+    /// The README's example topology file is one, as the README describes it.
+    #[test]
+    fn the_readmes_topology_file_is_one() {
+        let readme =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+        let start = readme
+            .find("```toml\n")
+            .expect("a TOML block in the README")
+            + 8;
+        let text = &readme[start..start + readme[start..].find("```").unwrap()];
+        let t = Topology::from_toml(text).unwrap();
+        let (forks, renders) = t.counts();
+        assert_eq!((t.name.as_str(), forks, renders), ("two-cards", 2, 8));
+        assert_eq!(t.cluster_id, "lab");
+        assert_eq!(t.model.link, crate::model::LinkModelKind::Paper);
+        assert_eq!(t.model.time_scale, 0.1);
+        assert_eq!(t.model.base_us, ModelParams::default().base_us);
+    }
+
     /// A grid the grid refuses says why, not that no such preset exists; a name that is
     /// neither a grid nor a file is an unknown preset.
     #[test]
@@ -791,7 +810,7 @@ mod tests {
         assert_eq!(path, &bad);
         assert!(matches!(**source, TopologyError::Toml(_)), "{e}");
         let start = format!(
-            "in the topology file {}: topology file is not valid TOML",
+            "in the topology file {}: cannot be read as a topology",
             bad.display()
         );
         assert!(e.to_string().starts_with(&start), "{e}");
