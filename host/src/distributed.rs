@@ -277,7 +277,7 @@ pub async fn render_on_cluster(
             for w in warnings {
                 tracing::warn!("{}: {w}", rc.scene);
             }
-            tracing::info!("starting {}", t.summary());
+            tracing::info!("scene read; the render runs on {}", t.summary());
         }
         read.map_err(|e| ClusterRenderError::from(RenderError::Load(e)))
     };
@@ -336,7 +336,7 @@ async fn next(
             fabric::cluster::refuse_late_joiner(
                 d,
                 format!(
-                    "the cluster {} is full and rendering; start this node before the next render",
+                    "the cluster {} is full and rendering; a node joins a cluster before its render begins",
                     cluster.formed.fabric.topology().name
                 ),
             );

@@ -1434,11 +1434,17 @@ fn print_cluster_summary(s: &host::distributed::ClusterStats) {
             l.subscreens_reassigned
         );
         if l.role == "fork node" {
-            let rows = l
-                .served_rows_after_s
-                .map_or("none before the end".into(), |s| format!("{s:.3} s"));
+            let rows = l.served_rows_after_s.map_or(
+                "none of its render nodes sent pixels through another fork node before the end"
+                    .into(),
+                |s| {
+                    format!(
+                        "first pixels of its render nodes through another fork node after {s:.3} s"
+                    )
+                },
+            );
             magg::say!(
-                "  its share ({} chunks and tiles) rebuilt on the live fork nodes and rendering went on {:.3} s after the loss; first pixels of its render nodes through another fork node after {rows}",
+                "  its share ({} chunks and tiles) rebuilt on the live fork nodes and rendering went on {:.3} s after the loss; {rows}",
                 l.items_moved,
                 l.recovered_after_s
             );
