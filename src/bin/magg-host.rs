@@ -519,14 +519,7 @@ struct RenderArgs {
     #[arg(short, long, default_value = "magg.png")]
     output: PathBuf,
     /// Render in this one process on all cores (instead of on a cluster).
-    // A cluster's flags beside it were accepted and did nothing. (`--cluster-id` is left
-    // out: it may come from MAGG_CLUSTER_ID, set for every command.)
-    #[arg(long, conflicts_with_all = [
-        "spawn", "listen", "secret", "secret_file", "join_timeout", "node_log", "transfer",
-        "cache", "demand_via", "dma_transport", "subscreens", "adaptive", "order",
-        "link_model", "time_scale", "render_threads", "coherent_rays", "ask_ahead", "ask_via",
-        "at_work",
-    ])]
+    #[arg(long, conflicts_with_all = ["spawn", "listen"])]
     in_process: bool,
     /// Continue an interrupted render from its checkpoint `OUTPUT.partial` (on any
     /// cluster, or in one process); the image is the same bytes as an uninterrupted render.
@@ -952,7 +945,59 @@ fn sampling(args: &RenderArgs) -> Result<Sampling> {
     })
 }
 
+/// The flags of `render` that only a cluster reads.
+const CLUSTER_FLAGS: [&str; 19] = [
+    "--topology",
+    "--secret",
+    "--secret-file",
+    "--join-timeout",
+    "--node-log",
+    "--transfer",
+    "--cache",
+    "--demand-via",
+    "--dma-transport",
+    "--subscreens",
+    "--adaptive",
+    "--order",
+    "--link-model",
+    "--time-scale",
+    "--render-threads",
+    "--coherent-rays",
+    "--ask-ahead",
+    "--ask-via",
+    "--at-work",
+];
+
+/// A cluster's flags given beside `--in-process` did nothing without a word. They are said,
+/// not refused: the same command with and without `--in-process` is how a cluster's image is
+/// checked against one process's.
+fn say_cluster_flags_unused(command_line: impl Iterator<Item = String>) -> Option<String> {
+    let given: Vec<&str> = command_line
+        .take_while(|a| a != "--")
+        .filter_map(|a| {
+            let name = a.split('=').next().unwrap_or_default().to_string();
+            CLUSTER_FLAGS.iter().copied().find(|f| *f == name)
+        })
+        .collect();
+    (!given.is_empty()).then(|| {
+        format!(
+            "{} only a cluster reads: in one process {} nothing",
+            given.join(", "),
+            if given.len() == 1 {
+                "it does"
+            } else {
+                "they do"
+            }
+        )
+    })
+}
+
 fn render(args: RenderArgs) -> Result<()> {
+    if args.in_process
+        && let Some(line) = say_cluster_flags_unused(std::env::args())
+    {
+        tracing::warn!("{line}");
+    }
     let (mut width, mut height) = (args.width, args.height);
     if let Some(p) = &args.preset {
         let (w, h) = match p.as_str() {
