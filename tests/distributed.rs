@@ -472,17 +472,8 @@ fn interrupting_the_host_stops_every_process() {
     let dir = scratch("ctrl-c");
     let out = dir.join("never.png");
     let mut host = Logged::start(
-        host()
-            .args([
-                "--log",
-                "info,magg::event=debug",
-                "render",
-                "--spawn",
-                "tiny",
-            ])
-            .args([
-                "--spp", "4096", "--width", "200", "--height", "200", "--quiet", "-o",
-            ])
+        render_on_spawned_tiny()
+            .args(["--spp", "4096", "--width", "200", "--height", "200", "-o"])
             .arg(&out),
     );
     // Interrupt once the render is under way: the first pixels have reached the host.

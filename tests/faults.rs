@@ -545,20 +545,7 @@ fn a_killed_child_of_a_spawning_host_is_handed_over() {
     let dir = scratch("fault-spawned");
     let args = long_render();
     let out = dir.join("cluster.png");
-    let mut host = Logged::start(
-        host()
-            .args([
-                "--log",
-                "info,magg::event=debug",
-                "render",
-                "--quiet",
-                "--spawn",
-                "tiny",
-            ])
-            .args(&args)
-            .arg("-o")
-            .arg(&out),
-    );
+    let mut host = Logged::start(render_on_spawned_tiny().args(&args).arg("-o").arg(&out));
     host.wait_for("MAGG_EVENT pixels node=", Duration::from_secs(60))
         .unwrap_or_else(|| panic!("the render did not begin: {}", host.log()));
     let render_child = render_node_child(host.pid()).expect("a render node child");
@@ -585,19 +572,10 @@ fn a_hung_child_of_a_spawning_host_does_not_delay_its_exit() {
     let dir = scratch("fault-spawned-hung");
     let out = dir.join("cluster.png");
     let mut host = Logged::start(
-        host()
-            .args([
-                "--log",
-                "info,magg::event=debug",
-                "render",
-                "--quiet",
-                "--spawn",
-                "tiny",
-                // Every render node holds work when it is stopped, so the image waits for
-                // its loss.
-                "--at-work",
-                "all",
-            ])
+        render_on_spawned_tiny()
+            // Every render node holds work when it is stopped, so the image waits for its
+            // loss.
+            .args(["--at-work", "all"])
             .args(long_render())
             .arg("-o")
             .arg(&out),

@@ -667,16 +667,22 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// The test render's stats, its four render nodes on one machine that let one work at
+    /// once.
+    fn one_at_work_of_four() -> String {
+        stats().replace(
+            r#""adaptive": false,"#,
+            r#""adaptive": false, "at_work": "auto",
+               "machine_limits": [{"nodes": [2, 3, 4, 5], "at_work": 1}],"#,
+        )
+    }
+
     /// A render whose four nodes shared a machine that let one work at once (the stats'
     /// `machine_limits`) is replayed so: one node renders the four subscreens one after
     /// another. The limit was ignored, every node given work, a quarter of the time.
     #[test]
     fn the_recorded_limit_of_nodes_at_work_is_replayed() {
-        let limited = stats().replace(
-            r#""adaptive": false,"#,
-            r#""adaptive": false, "at_work": "auto",
-               "machine_limits": [{"nodes": [2, 3, 4, 5], "at_work": 1}],"#,
-        );
+        let limited = one_at_work_of_four();
         let p = predict(&limited, &Overrides::default()).unwrap();
         assert!(
             p.predicted_s > 0.4 && p.predicted_s < 0.45,
@@ -694,11 +700,7 @@ mod tests {
     /// one; a changed setting that `--at-work auto` depends on keeps it, and says so.
     #[test]
     fn another_machine_or_at_work_sets_the_limit() {
-        let limited = stats().replace(
-            r#""adaptive": false,"#,
-            r#""adaptive": false, "at_work": "auto",
-               "machine_limits": [{"nodes": [2, 3, 4, 5], "at_work": 1}],"#,
-        );
+        let limited = one_at_work_of_four();
         let elsewhere = Overrides {
             topology: Some("tiny".into()),
             ..Overrides::default()

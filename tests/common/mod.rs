@@ -32,6 +32,21 @@ pub fn host() -> Command {
     c
 }
 
+/// `magg-host render --quiet` on a `tiny` cluster it spawns, logging when pixels reach the
+/// host (`MAGG_EVENT pixels node=`), so that a test can act once the render is under way.
+pub fn render_on_spawned_tiny() -> Command {
+    let mut c = host();
+    c.args([
+        "--log",
+        "info,magg::event=debug",
+        "render",
+        "--quiet",
+        "--spawn",
+        "tiny",
+    ]);
+    c
+}
+
 /// A fresh empty folder for one test's files.
 pub fn scratch(name: &str) -> PathBuf {
     let p = std::env::temp_dir().join(format!("magg-test-{}-{name}", std::process::id()));
