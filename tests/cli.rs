@@ -630,6 +630,15 @@ fn experiment_overhead_runs_both_renders_and_compares_bytes() {
     let stats: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("cluster.json")).unwrap()).unwrap();
     assert_eq!(stats["processes"], 6);
+    // A render that fails is said once as an error ("error: render ... failed: error: ...").
+    let o = run(host()
+        .args(["experiment", "overhead", "--out"])
+        .arg(&dir)
+        .args(["--", "/no/such/scene.gltf"]));
+    let err = stderr(&o);
+    assert!(!o.status.success());
+    assert!(err.contains("/no/such/scene.gltf"), "{err}");
+    assert_eq!(err.matches("error:").count(), 1, "{err}");
 }
 
 /// `experiment load-balance` on the smallest cluster: static division gives one subscreen

@@ -58,9 +58,17 @@ pub fn render_run(
             source,
         })?;
     if !o.status.success() {
+        // The render's own "error: " would follow this command's ("error: render ... failed:
+        // error: ...").
+        let said = String::from_utf8_lossy(&o.stderr);
+        let lines: Vec<&str> = said
+            .trim()
+            .lines()
+            .map(|l| l.strip_prefix("error: ").unwrap_or(l))
+            .collect();
         return Err(RunError::RenderFailed {
             args: args.join(" "),
-            stderr: String::from_utf8_lossy(&o.stderr).trim().to_string(),
+            stderr: lines.join("\n"),
         });
     }
     let text = std::fs::read(stats)?;
