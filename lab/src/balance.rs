@@ -148,7 +148,7 @@ pub fn load_balance(
 
 fn write_csv(path: &Path, r: &BalanceReport) -> Result<(), crate::LabError> {
     let io = crate::LabError::folder(path);
-    let mut f = std::fs::File::create(path).map_err(io)?;
+    let mut f = Vec::new();
     writeln!(
         f,
         "run,subscreens,node,node_subscreens,busy_s,waiting_s,idle_s"
@@ -164,6 +164,7 @@ fn write_csv(path: &Path, r: &BalanceReport) -> Result<(), crate::LabError> {
             .map_err(io)?;
         }
     }
+    scene_io::image_io::write_atomic(path, &f)?;
     Ok(())
 }
 

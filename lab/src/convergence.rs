@@ -181,7 +181,7 @@ pub fn error_sweep(
         peer_files,
         time_to,
     };
-    let mut f = std::fs::File::create(dir.join("error.csv")).map_err(folder)?;
+    let mut f = Vec::new();
     writeln!(f, "renderer,spp,wall_s,render_s,rel_mse").map_err(folder)?;
     for c in &report.curves {
         for p in &c.points {
@@ -193,6 +193,7 @@ pub fn error_sweep(
             .map_err(folder)?;
         }
     }
+    scene_io::image_io::write_atomic(&dir.join("error.csv"), &f)?;
     let series: Vec<(String, Vec<(f64, f64)>)> = report
         .curves
         .iter()

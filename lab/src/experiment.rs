@@ -372,9 +372,14 @@ async fn raw_fabric(config: &LinksConfig) -> Result<RawFabric, ExperimentError> 
     })
 }
 
+/// A table or figures written whole or not at all, as every output of magg.
+fn write_whole(path: &std::path::Path, bytes: &[u8]) -> Result<(), ExperimentError> {
+    scene_io::image_io::write_atomic(path, bytes).map_err(|e| ExperimentError::Plot(e.into()))
+}
+
 fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), ExperimentError> {
     std::fs::create_dir_all(&config.out_dir)?;
-    let mut f = std::fs::File::create(config.out_dir.join("one_way.csv"))?;
+    let mut f = Vec::new();
     writeln!(
         f,
         "d_row,d_col,samples,mean_us,stddev_us,formula_us,error_pct"
@@ -386,7 +391,8 @@ fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), Experiment
             o.d_row, o.d_col, o.samples, o.mean_us, o.stddev_us, o.formula_us, o.error_pct
         )?;
     }
-    let mut f = std::fs::File::create(config.out_dir.join("transfers.csv"))?;
+    write_whole(&config.out_dir.join("one_way.csv"), &f)?;
+    let mut f = Vec::new();
     writeln!(f, "transfer,active,bytes,samples,mean_us")?;
     for t in &r.transfers {
         writeln!(
@@ -395,9 +401,10 @@ fn write_outputs(r: &LinksReport, config: &LinksConfig) -> Result<(), Experiment
             t.transfer, t.active, t.bytes, t.samples, t.mean_us
         )?;
     }
-    std::fs::write(
-        config.out_dir.join("links.json"),
-        serde_json::to_vec_pretty(r).unwrap_or_default(),
+    write_whole(&config.out_dir.join("transfers.csv"), &f)?;
+    write_whole(
+        &config.out_dir.join("links.json"),
+        &serde_json::to_vec_pretty(r).unwrap_or_default(),
     )?;
     let one = config.out_dir.join("fig1.5-one-node.png");
     crate::plot::transfers_png(

@@ -26,6 +26,8 @@ pub enum RunError {
     },
     #[error(transparent)]
     Io(#[from] std::io::Error),
+    #[error(transparent)]
+    Write(#[from] scene_io::ImageError),
 }
 
 /// Runs `PROGRAM render ARGS --stats FILE -o OUT` (PROGRAM is `magg-host`; the caller names
@@ -193,7 +195,7 @@ pub fn cache_sweep(
             identical,
         });
     }
-    let mut f = std::fs::File::create(dir.join("cache.csv"))?;
+    let mut f = Vec::new();
     writeln!(
         f,
         "cache_percent,cache_bytes,bytes_fetched,fetched_per_node,hits,misses,evictions,hit_rate,wall_s,render_s,waiting_s,identical"
@@ -216,6 +218,7 @@ pub fn cache_sweep(
             r.identical
         )?;
     }
+    scene_io::image_io::write_atomic(&dir.join("cache.csv"), &f)?;
     Ok(rows)
 }
 

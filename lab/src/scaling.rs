@@ -364,7 +364,7 @@ fn write_csv(
     y_name: &str,
 ) -> Result<(), crate::LabError> {
     let io = crate::LabError::folder(path);
-    let mut f = std::fs::File::create(path).map_err(io)?;
+    let mut f = Vec::new();
     writeln!(f, "kind,curve,time_scale,{x_name},{y_name},predicted").map_err(io)?;
     for p in points {
         writeln!(
@@ -379,6 +379,7 @@ fn write_csv(
         )
         .map_err(io)?;
     }
+    scene_io::image_io::write_atomic(path, &f)?;
     Ok(())
 }
 

@@ -164,7 +164,7 @@ pub fn validate(
             rows.push(row(cases[case].name, &from, texts[case].1, p.predicted_s));
         }
     }
-    let mut f = std::fs::File::create(dir.join("validate.csv")).map_err(folder)?;
+    let mut f = Vec::new();
     writeln!(
         f,
         "case,predicted_from,measured_s,predicted_s,error_percent"
@@ -178,6 +178,7 @@ pub fn validate(
         )
         .map_err(folder)?;
     }
+    scene_io::image_io::write_atomic(&dir.join("validate.csv"), &f)?;
     scene_io::image_io::write_atomic(&dir.join("report.md"), report_md(&rows).as_bytes())?;
     Ok(rows)
 }
