@@ -137,9 +137,7 @@ pub fn files_named(path: &Path) -> Vec<PathBuf> {
         .iter()
         .filter_map(|list| doc.get(list)?.as_array())
         .flatten()
-        .filter_map(|named| named.get("uri")?.as_str())
-        .filter(|uri| !uri.starts_with("data:") && !uri.contains("://"))
-        .map(|uri| dir.join(&*percent_encoding::percent_decode_str(uri).decode_utf8_lossy()))
+        .filter_map(|named| local_file(&dir, named.get("uri")?.as_str()?))
         .collect()
 }
 
@@ -536,18 +534,25 @@ fn decode_data_uri(uri: &str) -> Option<Vec<u8>> {
     }
 }
 
+/// The file a buffer's or image's URI names, relative to the scene's folder `dir`
+/// (percent-decoded); `None` for an embedded data URI or another scheme, which name no file.
+/// Loading and [`files_named`] both resolve URIs here, so the files a command refuses to
+/// write over are the ones the loader reads.
+fn local_file(dir: &Path, uri: &str) -> Option<PathBuf> {
+    if uri.starts_with("data:") || uri.contains("://") {
+        return None;
+    }
+    Some(dir.join(&*percent_encoding::percent_decode_str(uri).decode_utf8_lossy()))
+}
+
 /// Reads a URI relative to the scene file (percent-decoded), or an embedded data URI.
 fn read_uri(ctx: &Ctx, uri: &str) -> Result<Vec<u8>, String> {
     if uri.starts_with("data:") {
         return decode_data_uri(uri).ok_or_else(|| "malformed data URI".to_string());
     }
-    if uri.contains("://") {
+    let Some(file) = local_file(&ctx.dir, uri) else {
         return Err(format!("URI {uri:?} is not a local file"));
-    }
-    let decoded = percent_encoding::percent_decode_str(uri)
-        .decode_utf8_lossy()
-        .into_owned();
-    let file = ctx.dir.join(&decoded);
+    };
     std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))
 }
 
