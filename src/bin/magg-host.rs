@@ -217,6 +217,10 @@ struct CacheArgs {
 /// generates, for the nodes to read.
 const GENERATED_SECRET: &str = "magg-secret";
 
+/// The help heading of the flags only a cluster reads; `render --in-process` says which of
+/// them it was given ([`cluster_flags_given`]).
+const CLUSTER_HEADING: &str = "Cluster options (not read by --in-process)";
+
 /// Where the cluster comes from: spawned here, or nodes joining from elsewhere.
 #[derive(Args, Clone)]
 struct ClusterArgs {
@@ -528,7 +532,67 @@ struct RenderArgs {
     /// Seconds between checkpoints of a render in progress (`OUTPUT.partial`).
     #[arg(long, default_value_t = 10.0, value_name = "SECONDS", value_parser = magg::fractional_seconds)]
     checkpoint_every: f64,
-    #[command(flatten)]
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    /// Image height; by default from the camera's aspect ratio, else 3/4 of the width (480
+    /// for the default 640).
+    #[arg(long)]
+    height: Option<u32>,
+    /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga (not with
+    /// --width or --height, which it would override).
+    #[arg(long, conflicts_with_all = ["width", "height"])]
+    preset: Option<String>,
+    /// Samples per pixel [default: 64; 24 for the built-in demo scene when it is denoised].
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Seed of every pixel's random numbers: the same seed renders the same bytes.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// path (unbiased path tracing) or whitted (the paper's ray tracer).
+    #[arg(long, default_value = "path")]
+    integrator: IntegratorKind,
+    /// Longest path, in bounces [default: 64 for path, 16 for whitted].
+    #[arg(long)]
+    max_depth: Option<u32>,
+    /// Adaptive sampling: stop a pixel once its relative standard error is below this (0: off).
+    #[arg(long, default_value_t = 0.0)]
+    noise_threshold: f32,
+    /// Biased: limit light found by a caustic path (a rough bounce, then mirrors or glass,
+    /// then the light) to this value per sample (largest channel), which removes fireflies
+    /// along with some caustic light. 0: off, the default for scene files; the built-in demo
+    /// scene uses 8 when denoised, else 4.
+    #[arg(long)]
+    clamp_indirect: Option<f32>,
+    /// Biased: filter the finished image with an edge-aware denoiser guided by the albedo,
+    /// normals and depth the camera sees (traced by the host). Off by default for scene
+    /// files; on for the built-in demo scene unless told otherwise.
+    #[arg(long, value_parser = parse_on_off, action = clap::ArgAction::Set)]
+    denoise: Option<bool>,
+    /// The scene camera to use, by name (default: the first, or an automatic one).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Rendering threads in one process; on a cluster, the host's threads for the
+    /// denoiser's guides (default: all cores).
+    #[arg(long, value_parser = magg::thread_count)]
+    threads: Option<usize>,
+    /// Write render statistics as JSON.
+    #[arg(long)]
+    stats: Option<PathBuf>,
+    /// Most triangles in one chunk (the unit of shape data moved and cached).
+    #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
+    chunk_triangles: usize,
+    /// Radiance of the world around the scene, the same from every direction: one number
+    /// (grey) or R,G,B. By default a sky (1 above, 0.25 below) when the scene has no lights,
+    /// else black.
+    #[arg(long, value_parser = parse_rgb)]
+    environment: Option<glam::Vec3>,
+    /// No progress bar or progress lines.
+    #[arg(long)]
+    quiet: bool,
+    // The cluster's flags come last: the heading of a flattened group goes on to every
+    // field after it.
+    #[command(flatten, next_help_heading = CLUSTER_HEADING)]
     cluster: ClusterArgs,
     /// How render nodes get shape data: demand (fetched into a bounded cache) or batch.
     #[arg(long, default_value = "demand", value_parser = parse_transfer_mode)]
@@ -592,64 +656,6 @@ struct RenderArgs {
     /// machines, where nodes wait rather than compute).
     #[arg(long, default_value = "auto")]
     at_work: host::schedule::AtWork,
-    /// Image width in pixels.
-    #[arg(long, default_value_t = 640)]
-    width: u32,
-    /// Image height; by default from the camera's aspect ratio, else 3/4 of the width (480
-    /// for the default 640).
-    #[arg(long)]
-    height: Option<u32>,
-    /// Resolution preset: hdtv (1920x1035, the paper's display), 1080p, 720p, vga (not with
-    /// --width or --height, which it would override).
-    #[arg(long, conflicts_with_all = ["width", "height"])]
-    preset: Option<String>,
-    /// Samples per pixel [default: 64; 24 for the built-in demo scene when it is denoised].
-    #[arg(long)]
-    spp: Option<u32>,
-    /// Seed of every pixel's random numbers: the same seed renders the same bytes.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// path (unbiased path tracing) or whitted (the paper's ray tracer).
-    #[arg(long, default_value = "path")]
-    integrator: IntegratorKind,
-    /// Longest path, in bounces [default: 64 for path, 16 for whitted].
-    #[arg(long)]
-    max_depth: Option<u32>,
-    /// Adaptive sampling: stop a pixel once its relative standard error is below this (0: off).
-    #[arg(long, default_value_t = 0.0)]
-    noise_threshold: f32,
-    /// Biased: limit light found by a caustic path (a rough bounce, then mirrors or glass,
-    /// then the light) to this value per sample (largest channel), which removes fireflies
-    /// along with some caustic light. 0: off, the default for scene files; the built-in demo
-    /// scene uses 8 when denoised, else 4.
-    #[arg(long)]
-    clamp_indirect: Option<f32>,
-    /// Biased: filter the finished image with an edge-aware denoiser guided by the albedo,
-    /// normals and depth the camera sees (traced by the host). Off by default for scene
-    /// files; on for the built-in demo scene unless told otherwise.
-    #[arg(long, value_parser = parse_on_off, action = clap::ArgAction::Set)]
-    denoise: Option<bool>,
-    /// The scene camera to use, by name (default: the first, or an automatic one).
-    #[arg(long)]
-    camera: Option<String>,
-    /// Rendering threads in one process; on a cluster, the host's threads for the
-    /// denoiser's guides (default: all cores).
-    #[arg(long, value_parser = magg::thread_count)]
-    threads: Option<usize>,
-    /// Write render statistics as JSON.
-    #[arg(long)]
-    stats: Option<PathBuf>,
-    /// Most triangles in one chunk (the unit of shape data moved and cached).
-    #[arg(long, default_value_t = 4096, value_parser = chunk_size)]
-    chunk_triangles: usize,
-    /// Radiance of the world around the scene, the same from every direction: one number
-    /// (grey) or R,G,B. By default a sky (1 above, 0.25 below) when the scene has no lights,
-    /// else black.
-    #[arg(long, value_parser = parse_rgb)]
-    environment: Option<glam::Vec3>,
-    /// No progress bar or progress lines.
-    #[arg(long)]
-    quiet: bool,
 }
 
 /// After a render that ended early: where its finished lines are, if any were kept.
@@ -945,58 +951,43 @@ fn sampling(args: &RenderArgs) -> Result<Sampling> {
     })
 }
 
-/// The flags of `render` that only a cluster reads.
-const CLUSTER_FLAGS: [&str; 19] = [
-    "--topology",
-    "--secret",
-    "--secret-file",
-    "--join-timeout",
-    "--node-log",
-    "--transfer",
-    "--cache",
-    "--demand-via",
-    "--dma-transport",
-    "--subscreens",
-    "--adaptive",
-    "--order",
-    "--link-model",
-    "--time-scale",
-    "--render-threads",
-    "--coherent-rays",
-    "--ask-ahead",
-    "--ask-via",
-    "--at-work",
-];
-
-/// A cluster's flags given beside `--in-process` did nothing without a word. They are said,
-/// not refused: the same command with and without `--in-process` is how a cluster's image is
-/// checked against one process's.
-fn say_cluster_flags_unused(command_line: impl Iterator<Item = String>) -> Option<String> {
-    let given: Vec<&str> = command_line
-        .take_while(|a| a != "--")
-        .filter_map(|a| {
-            let name = a.split('=').next().unwrap_or_default().to_string();
-            CLUSTER_FLAGS.iter().copied().find(|f| *f == name)
-        })
-        .collect();
-    (!given.is_empty()).then(|| {
-        format!(
-            "{} only a cluster reads: in one process {} nothing",
-            given.join(", "),
-            if given.len() == 1 {
-                "it does"
-            } else {
-                "they do"
-            }
-        )
-    })
+/// The flags under [`CLUSTER_HEADING`] that this command line gave `render` itself (not
+/// through the environment), as typed. A cluster's flags beside `--in-process` did nothing
+/// without a word; they are said, not refused: the same command with and without
+/// `--in-process` is how a cluster's image is checked against one process's.
+fn cluster_flags_given() -> Vec<String> {
+    use clap::{CommandFactory, parser::ValueSource};
+    let cli = Cli::command();
+    let Ok(matches) = cli.clone().try_get_matches_from(std::env::args_os()) else {
+        return Vec::new();
+    };
+    let (Some(("render", given)), Some(render)) =
+        (matches.subcommand(), cli.find_subcommand("render"))
+    else {
+        return Vec::new();
+    };
+    render
+        .get_arguments()
+        .filter(|a| a.get_help_heading() == Some(CLUSTER_HEADING))
+        .filter(|a| given.value_source(a.get_id().as_str()) == Some(ValueSource::CommandLine))
+        .filter_map(|a| Some(format!("--{}", a.get_long()?)))
+        .collect()
 }
 
 fn render(args: RenderArgs) -> Result<()> {
-    if args.in_process
-        && let Some(line) = say_cluster_flags_unused(std::env::args())
-    {
-        tracing::warn!("{line}");
+    if args.in_process {
+        let given = cluster_flags_given();
+        if !given.is_empty() {
+            tracing::warn!(
+                "{} only a cluster reads: in one process {} nothing",
+                given.join(", "),
+                if given.len() == 1 {
+                    "it does"
+                } else {
+                    "they do"
+                }
+            );
+        }
     }
     let (mut width, mut height) = (args.width, args.height);
     if let Some(p) = &args.preset {
@@ -1771,23 +1762,40 @@ mod tests {
     use super::*;
     use clap::CommandFactory;
 
+    /// Every argument of every subcommand, with the command path it belongs to and whether
+    /// a user sees it (neither it nor a command above it hidden).
+    fn every_argument() -> Vec<(String, clap::Arg, bool)> {
+        fn walk(
+            cmd: &clap::Command,
+            path: &str,
+            shown: bool,
+            out: &mut Vec<(String, clap::Arg, bool)>,
+        ) {
+            for arg in cmd.get_arguments() {
+                out.push((path.to_string(), arg.clone(), shown && !arg.is_hide_set()));
+            }
+            for sub in cmd.get_subcommands() {
+                let path = format!("{path} {}", sub.get_name());
+                walk(sub, &path, shown && !sub.is_hide_set(), out);
+            }
+        }
+        let mut out = Vec::new();
+        walk(&Cli::command(), "magg-host", true, &mut out);
+        out
+    }
+
     /// Every flag and argument says in its help what it is (a dozen said nothing but their
     /// name).
     #[test]
     fn every_argument_has_help() {
-        fn walk(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
-            for arg in cmd.get_arguments() {
+        let missing: Vec<String> = every_argument()
+            .into_iter()
+            .filter(|(_, arg, shown)| {
                 let builtin = matches!(arg.get_id().as_str(), "help" | "version");
-                if !builtin && !arg.is_hide_set() && arg.get_help().is_none() {
-                    missing.push(format!("{path} {}", arg.get_id()));
-                }
-            }
-            for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
-                walk(sub, &format!("{path} {}", sub.get_name()), missing);
-            }
-        }
-        let mut missing = Vec::new();
-        walk(&Cli::command(), "magg-host", &mut missing);
+                *shown && !builtin && arg.get_help().is_none()
+            })
+            .map(|(path, arg, _)| format!("{path} {}", arg.get_id()))
+            .collect();
         assert!(missing.is_empty(), "without help: {missing:?}");
     }
 
@@ -1795,26 +1803,19 @@ mod tests {
     /// it showed `[default: 5 10 20 40 100]`, which the flag (comma-separated) refused.
     #[test]
     fn list_defaults_are_shown_as_they_are_typed() {
-        fn walk(cmd: &clap::Command, path: &str, seen: &mut usize) {
-            for arg in cmd.get_arguments() {
-                if arg.get_value_delimiter().is_some() && !arg.get_default_values().is_empty() {
-                    *seen += 1;
-                    assert_eq!(
-                        arg.get_default_values().len(),
-                        1,
-                        "{path} --{}: give the default as one comma-separated string",
-                        arg.get_id()
-                    );
-                }
-            }
-            for sub in cmd.get_subcommands() {
-                walk(sub, &format!("{path} {}", sub.get_name()), seen);
+        let mut seen = 0;
+        for (path, arg, _) in every_argument() {
+            if arg.get_value_delimiter().is_some() && !arg.get_default_values().is_empty() {
+                seen += 1;
+                assert_eq!(
+                    arg.get_default_values().len(),
+                    1,
+                    "{path} --{}: give the default as one comma-separated string",
+                    arg.get_id()
+                );
             }
         }
-        let cli = Cli::command();
-        cli.clone().debug_assert();
-        let mut seen = 0;
-        walk(&cli, "magg-host", &mut seen);
+        Cli::command().debug_assert();
         assert!(
             seen >= 2,
             "the list flags with defaults were found ({seen})"
